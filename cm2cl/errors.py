@@ -1,0 +1,17 @@
+"""Exception types: every user-facing error names the input and the problem."""
+
+
+class CM2Error(Exception):
+    """Base class of cm2cl errors."""
+
+
+class InputError(CM2Error, ValueError):
+    """Bad input: wrong shape, dtype, NaN/Inf, empty PSF plane, bad parameter."""
+
+
+class DeviceError(CM2Error, RuntimeError):
+    """No usable OpenCL device, a device that lacks a capability, or too little memory."""
+
+
+class KernelBuildError(CM2Error, RuntimeError):
+    """An OpenCL program failed to build; the message holds the file name and the build log."""
