@@ -1,0 +1,166 @@
+"""Batched 2D FFTs on the device behind one small interface.
+
+Two backends:
+
+* ``vkfft`` (pyvkfft, when importable): real-to-complex, fast on 2/3/5/7-smooth sizes; the
+  spectrum of a (b, py, px) real array is (b, py, px//2 + 1) complex.
+* ``reikna`` (always available): complex-to-complex, fast on powers of two; the spectrum is
+  (b, py, px) complex.  Real input is widened on the device first.
+
+Every kernel downstream is elementwise over the spectrum, so the two layouts need no special
+casing: a plane of the spectrum is ``plan.spec_shape[1:]``.  Inverse transforms are normalised
+(ifft(fft(x)) == x) and may overwrite their input.  No fast-math anywhere.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from . import kernels
+from .errors import InputError
+
+BACKENDS = ("vkfft", "reikna")
+
+
+def _vkfft_importable() -> bool:
+    try:
+        import pyvkfft.opencl  # noqa: F401
+    except Exception:  # pyvkfft missing, or built without the OpenCL backend
+        return False
+    return True
+
+
+def available_backends() -> list[str]:
+    return [b for b in BACKENDS if b != "vkfft" or _vkfft_importable()]
+
+
+def resolve_backend(name: str | None = "auto") -> str:
+    """'auto' -> vkfft if importable, else reikna; an explicit name must be available."""
+    name = (name or "auto").lower()
+    if name == "auto":
+        return "vkfft" if _vkfft_importable() else "reikna"
+    if name not in BACKENDS:
+        raise InputError(f"fft backend: unknown backend {name!r} (known: auto, {', '.join(BACKENDS)})")
+    if name == "vkfft" and not _vkfft_importable():
+        raise InputError("fft backend: 'vkfft' requested but pyvkfft is not importable "
+                         "(pip install 'cm2cl[vkfft]')")
+    return name
+
+
+def _is_smooth(n: int, primes=(2, 3, 5, 7)) -> bool:
+    for p in primes:
+        while n % p == 0:
+            n //= p
+    return n == 1
+
+
+def good_size(n: int, backend: str) -> int:
+    """Smallest size >= n on which ``backend`` is fast (and even, for real-to-complex)."""
+    n = max(int(n), 1)
+    if backend == "reikna":
+        return 1 << (n - 1).bit_length()
+    m = n + (n % 2)
+    while not _is_smooth(m):
+        m += 2
+    return m
+
+
+def complex_dtype(dtype) -> np.dtype:
+    return np.dtype(np.complex64 if np.dtype(dtype) == np.float32 else np.complex128)
+
+
+class FFTPlan:
+    """Forward and inverse 2D FFT over the last two axes of a (batch, py, px) real array."""
+
+    def __init__(self, rt, shape, batch: int, dtype, backend: str):
+        self.rt = rt
+        self.dtype = np.dtype(dtype)
+        self.cdtype = complex_dtype(dtype)
+        self.backend = backend
+        py, px = (int(s) for s in shape)
+        self.real_shape = (int(batch), py, px)
+        if backend == "vkfft":
+            from pyvkfft.opencl import VkFFTApp
+
+            self.spec_shape = (int(batch), py, px // 2 + 1)
+            self._app = VkFFTApp(self.real_shape, self.dtype, rt.queue, ndim=2, inplace=False,
+                                 r2c=True, r2c_odd=bool(px % 2), norm=1)
+        elif backend == "reikna":
+            _install_reikna_numpy2_compat()
+            from reikna.core import Type
+            from reikna.fft import FFT
+
+            self.spec_shape = self.real_shape
+            self._fft = FFT(Type(self.cdtype, self.spec_shape), axes=(1, 2)).compile(_reikna_thread(rt))
+            self._r2c = kernels.kernel(rt, "layout.cl", "real_to_complex", self.dtype)
+            self._re = kernels.kernel(rt, "layout.cl", "complex_real_part", self.dtype)
+        else:
+            raise InputError(f"fft backend: unknown backend {backend!r}")
+
+    def _check(self, a, shape, dtype, what):
+        if tuple(a.shape) != tuple(shape) or a.dtype != dtype:
+            raise InputError(f"{what}: expected {shape} {np.dtype(dtype)}, got {a.shape} {a.dtype}")
+
+    def forward(self, src, dst):
+        """dst (spectrum) <- FFT(src (real)); src is left intact."""
+        self._check(src, self.real_shape, self.dtype, "fft input")
+        self._check(dst, self.spec_shape, self.cdtype, "fft output")
+        if self.backend == "vkfft":
+            self._app.fft(src, dst)
+        else:
+            n = np.uint64(src.size)
+            self._r2c(self.rt.queue, (src.size,), None, dst.data, src.data, n)
+            self._fft(dst, dst, inverse=0)
+        return dst
+
+    def inverse(self, src, dst):
+        """dst (real) <- IFFT(src (spectrum)), normalised; src may be overwritten."""
+        self._check(src, self.spec_shape, self.cdtype, "ifft input")
+        self._check(dst, self.real_shape, self.dtype, "ifft output")
+        if self.backend == "vkfft":
+            self._app.ifft(src, dst)
+        else:
+            self._fft(src, src, inverse=1)
+            n = np.uint64(dst.size)
+            self._re(self.rt.queue, (dst.size,), None, dst.data, src.data, n)
+        return dst
+
+
+def _install_reikna_numpy2_compat():
+    """reikna 0.8 (the last release with reikna.cluda) predates NumPy 2 and uses four names
+    NumPy 2 removed.  Restore exactly those names, with their NumPy 1 meaning, if missing."""
+    d = np.__dict__
+    if "float_" not in d:
+        np.float_ = np.float64
+    if "complex_" not in d:
+        np.complex_ = np.complex128
+    if "issctype" not in d:
+        np.issctype = lambda rep: isinstance(rep, type) and issubclass(rep, np.generic)
+    if "cast" not in d:
+        class _Cast:
+            def __getitem__(self, dt):
+                return lambda v: np.asarray(v).astype(dt)[()]
+        np.cast = _Cast()
+
+
+def _reikna_thread(rt):
+    thr = rt.cache.get("reikna_thread")
+    if thr is None:
+        _install_reikna_numpy2_compat()
+        from reikna.cluda import ocl_api
+
+        thr = ocl_api().Thread(rt.queue)
+        rt.cache["reikna_thread"] = thr
+    return thr
+
+
+def get_plan(rt, shape, batch: int, dtype, backend: str = "auto") -> FFTPlan:
+    """Cached plan on runtime ``rt`` for (batch, *shape) real arrays of ``dtype``."""
+    backend = resolve_backend(backend)
+    dtype = rt.check_dtype(dtype)
+    key = ("fft", backend, tuple(int(s) for s in shape), int(batch), dtype.str)
+    plan = rt.cache.get(key)
+    if plan is None:
+        plan = FFTPlan(rt, shape, batch, dtype, backend)
+        rt.cache[key] = plan
+    return plan

@@ -1,0 +1,219 @@
+"""The CM2 forward operator on the device (paper Eq. 3) and its adjoint.
+
+    y = C sum_i h_i (*) x_i
+
+Depth planes i, PSF h_i on the sensor grid M = (My, Mx) with the optical axis at pixel
+(My//2, Mx//2); object x on the padded grid P = (Py, Px) >= 2M - 1, so that light from emitters
+outside the field of view is modelled (unknown boundary); (*) is circular convolution on P by
+FFT; C crops P to the sensor window [oy:oy+My, ox:ox+Mx], oy = (Py-My)//2, ox = (Px-Mx)//2.
+With P >= 2M - 1 no wrapped-around light reaches the window.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from . import checks, fft, kernels
+from .device import get_runtime
+from .errors import InputError
+from .volume import Volume, slab_bounds
+
+
+def min_padded_shape(sensor_shape):
+    """Smallest padded grid for a PSF that may fill the whole sensor: 2M - 1."""
+    return tuple(2 * int(m) - 1 for m in sensor_shape)
+
+
+def choose_padded_shape(sensor_shape, backend: str):
+    """The padded grid a backend is fast on: powers of two for reikna, 2/3/5/7-smooth for vkfft."""
+    backend = fft.resolve_backend(backend)
+    return tuple(fft.good_size(n, backend) for n in min_padded_shape(sensor_shape))
+
+
+def crop_offsets(sensor_shape, padded_shape):
+    return tuple((int(p) - int(m)) // 2 for m, p in zip(sensor_shape, padded_shape))
+
+
+def centered_psf(psf: np.ndarray, padded_shape) -> np.ndarray:
+    """PSF planes embedded in the padded grid with the optical axis moved to index (0, 0)."""
+    nz, my, mx = psf.shape
+    py, px = padded_shape
+    out = np.zeros((nz, py, px), psf.dtype)
+    out[:, :my, :mx] = psf
+    return np.roll(out, (-(my // 2), -(mx // 2)), axis=(1, 2))
+
+
+class ForwardModel:
+    """H (and its adjoint) for one PSF stack on one OpenCL device.
+
+    Parameters
+    ----------
+    psf : (nz, My, Mx) or (My, Mx) float array
+        PSF per depth plane on the sensor grid (camera offset already removed).
+    dtype : float32 (default) or float64 (needs a device with fp64).
+    backend : 'auto', 'vkfft' or 'reikna'.
+    device : device index, name fragment, pyopencl Device or Runtime; default per cm2cl.device.
+    padded_shape : (Py, Px) >= 2M - 1; default the backend's fast size.
+    max_slab_planes : cap on depth planes per device buffer (default: as the device allows).
+    """
+
+    def __init__(self, psf, *, dtype=np.float32, backend="auto", device=None,
+                 padded_shape=None, max_slab_planes=None):
+        psf = checks.psf_stack(psf, "psf")
+        self.rt = get_runtime(device)
+        self.dtype = self.rt.check_dtype(dtype)
+        self.cdtype = fft.complex_dtype(self.dtype)
+        self.backend = fft.resolve_backend(backend)
+        self.nz = psf.shape[0]
+        self.sensor_shape = tuple(psf.shape[1:])
+        if padded_shape is None:
+            padded_shape = choose_padded_shape(self.sensor_shape, self.backend)
+        padded_shape = tuple(int(p) for p in padded_shape)
+        need = min_padded_shape(self.sensor_shape)
+        if len(padded_shape) != 2 or any(p < n for p, n in zip(padded_shape, need)):
+            raise InputError(f"padded_shape: {padded_shape} is smaller than 2*sensor-1 = {need} "
+                             f"for sensor {self.sensor_shape}")
+        self.padded_shape = padded_shape
+        self.offsets = crop_offsets(self.sensor_shape, padded_shape)
+        oy, ox = self.offsets
+        my, mx = self.sensor_shape
+        self.crop = (slice(oy, oy + my), slice(ox, ox + mx))
+
+        plan1 = fft.get_plan(self.rt, padded_shape, 1, self.dtype, self.backend)
+        self.spec_plane = plan1.spec_shape[1:]
+        self.nfreq = int(np.prod(self.spec_plane))
+        plane_bytes = self.nfreq * self.cdtype.itemsize
+        self.bounds = slab_bounds(self.nz, plane_bytes, self.rt.caps.max_alloc, max_slab_planes)
+        self._plan2d = plan1
+
+        # PSF spectra, computed on the device once.
+        self.psf_spectra = self.new_spectrum_volume()
+        hc = centered_psf(psf, padded_shape)
+        for (z0, z1), hs in self.psf_spectra:
+            tmp = Volume(self.rt, [(0, z1 - z0)], padded_shape, self.dtype).set(hc[z0:z1])
+            self.plan(z1 - z0).forward(tmp.slabs[0], hs)
+        self._k_mac = kernels.kernel(self.rt, "fft_conv.cl", "spectral_mac", self.dtype)
+        self._k_bcast = kernels.kernel(self.rt, "fft_conv.cl", "spectral_conj_bcast", self.dtype)
+        self._k_crop = kernels.kernel(self.rt, "layout.cl", "crop", self.dtype)
+        self._k_embed = kernels.kernel(self.rt, "layout.cl", "embed", self.dtype)
+        self._scratch = {}
+
+    # ---- allocation helpers -------------------------------------------------------------
+    def plan(self, planes: int):
+        return fft.get_plan(self.rt, self.padded_shape, planes, self.dtype, self.backend)
+
+    def new_volume(self) -> Volume:
+        """A real (nz, Py, Px) volume with this model's slab bounds."""
+        return Volume(self.rt, self.bounds, self.padded_shape, self.dtype)
+
+    def new_spectrum_volume(self) -> Volume:
+        return Volume(self.rt, self.bounds, self.spec_plane, self.cdtype)
+
+    def new_plane(self, spectrum: bool = False) -> Volume:
+        shape = self.spec_plane if spectrum else self.padded_shape
+        return Volume(self.rt, [(0, 1)], shape, self.cdtype if spectrum else self.dtype)
+
+    def _scratch_get(self, name, factory):
+        if name not in self._scratch:
+            self._scratch[name] = factory()
+        return self._scratch[name]
+
+    # ---- device-level building blocks (arrays stay on the device) ------------------------
+    def mac(self, spectra: Volume, out, comp):
+        """out = sum_i H_i X_i over all depth planes (Kahan-compensated); out, comp: plane arrays."""
+        q = self.rt.queue
+        n = np.uint64(self.nfreq)
+        for first, ((z0, z1), xs), hs in zip([1] + [0] * len(self.bounds), spectra, self.psf_spectra.slabs):
+            self._k_mac(q, (self.nfreq,), None, out.data, comp.data, hs.data, xs.data,
+                        np.int32(z1 - z0), n, np.int32(first))
+        return out
+
+    def conj_bcast(self, v, spectra: Volume):
+        """spectra_i = conj(H_i) v for every depth plane."""
+        q = self.rt.queue
+        n = np.uint64(self.nfreq)
+        for ((z0, z1), xs), hs in zip(spectra, self.psf_spectra.slabs):
+            self._k_bcast(q, (self.nfreq,), None, xs.data, hs.data, v.data, np.int32(z1 - z0), n)
+        return spectra
+
+    def crop_to_sensor(self, padded, out):
+        my, mx = self.sensor_shape
+        py, px = self.padded_shape
+        planes = padded.shape[0] if padded.ndim == 3 else 1
+        self._k_crop(self.rt.queue, (mx, my, planes), None, out.data, padded.data,
+                     *map(np.int32, (my, mx, py, px, *self.offsets)))
+        return out
+
+    def embed_from_sensor(self, sensor, out):
+        my, mx = self.sensor_shape
+        py, px = self.padded_shape
+        planes = sensor.shape[0] if sensor.ndim == 3 else 1
+        self._k_embed(self.rt.queue, (px, py, planes), None, out.data, sensor.data,
+                      *map(np.int32, (my, mx, py, px, *self.offsets)))
+        return out
+
+    def convolve_device(self, x: Volume, out_plane):
+        """out_plane (1, Py, Px) = sum_i h_i (*) x_i, without the crop."""
+        acc = self._scratch_get("acc", lambda: self.new_plane(True))
+        comp = self._scratch_get("comp", lambda: self.new_plane(True))
+        spec = self._scratch_get("spec", self.new_spectrum_volume)
+        for ((z0, z1), xs), (_, ss) in zip(x, spec):
+            self.plan(z1 - z0).forward(xs, ss)
+        self.mac(spec, acc.slabs[0], comp.slabs[0])
+        self._plan2d.inverse(acc.slabs[0], out_plane)
+        return out_plane
+
+    def adjoint_padded_device(self, v_plane, out: Volume):
+        """out = H^T v for a padded-grid plane v (1, Py, Px)."""
+        vs = self._scratch_get("acc", lambda: self.new_plane(True))
+        spec = self._scratch_get("spec", self.new_spectrum_volume)
+        self._plan2d.forward(v_plane, vs.slabs[0])
+        self.conj_bcast(vs.slabs[0], spec)
+        for ((z0, z1), xs), (_, ss) in zip(out, spec):
+            self.plan(z1 - z0).inverse(ss, xs)
+        return out
+
+    # ---- numpy in, numpy out -------------------------------------------------------------
+    def _volume_arg(self, x, name="x"):
+        x = checks.real_array(x, name, ndims=(2, 3))
+        if x.ndim == 2:
+            x = x[None]
+        want = (self.nz,) + self.padded_shape
+        if x.shape != want:
+            raise InputError(f"{name}: shape {x.shape} does not fit the model: expected "
+                             f"(nz, Py, Px) = {want} (padded grid)")
+        return x
+
+    def _sensor_arg(self, y, name="y"):
+        y = checks.real_array(y, name, ndims=(2,))
+        if y.shape != self.sensor_shape:
+            raise InputError(f"{name}: shape {y.shape} does not match the PSF's sensor grid {self.sensor_shape}")
+        return y
+
+    def convolve(self, x) -> np.ndarray:
+        """sum_i h_i (*) x_i on the padded grid (no crop); x is (nz, Py, Px)."""
+        x = self._volume_arg(x)
+        xv = self._scratch_get("x", self.new_volume).set(x)
+        out = self._scratch_get("plane", self.new_plane)
+        return self.convolve_device(xv, out.slabs[0]).get()[0]
+
+    def forward(self, x) -> np.ndarray:
+        """y = C H x: the (My, Mx) sensor image of a (nz, Py, Px) object."""
+        x = self._volume_arg(x)
+        xv = self._scratch_get("x", self.new_volume).set(x)
+        plane = self._scratch_get("plane", self.new_plane)
+        self.convolve_device(xv, plane.slabs[0])
+        y = self._scratch_get("sensor", lambda: Volume(self.rt, [(0, 1)], self.sensor_shape, self.dtype))
+        self.crop_to_sensor(plane.slabs[0], y.slabs[0])
+        return y.get()[0]
+
+    def adjoint(self, y) -> np.ndarray:
+        """x = H^T C^T y: the (nz, Py, Px) back-projection of a (My, Mx) sensor image."""
+        y = self._sensor_arg(y)
+        ys = self._scratch_get("sensor", lambda: Volume(self.rt, [(0, 1)], self.sensor_shape, self.dtype))
+        ys.set(y[None])
+        plane = self._scratch_get("plane", self.new_plane)
+        self.embed_from_sensor(ys.slabs[0], plane.slabs[0])
+        xv = self._scratch_get("x", self.new_volume)
+        self.adjoint_padded_device(plane.slabs[0], xv)
+        return xv.get()

@@ -1,0 +1,95 @@
+"""The one place that builds OpenCL programs.
+
+Sources are the ``kernels/*.cl`` files, shipped in the wheel as the package
+``cm2cl.kernel_src`` (in a source checkout without install, read from ``../kernels``). Each file is
+prepended with ``common.cl`` and built lazily, once per (runtime, file, real type, defines),
+with ``-D REAL=float|double``. Build failures raise :class:`KernelBuildError` with the file
+name and the compiler log. Fast-math options are never used.
+"""
+
+from __future__ import annotations
+
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+
+from .errors import KernelBuildError
+
+_SOURCES: dict[str, str] = {}
+
+
+def kernel_dir():
+    """Folder holding the .cl files: the installed package data, else the source tree."""
+    try:
+        return resources.files("cm2cl.kernel_src")
+    except ModuleNotFoundError:
+        return Path(__file__).resolve().parent.parent / "kernels"
+
+
+def source(name: str) -> str:
+    """Text of ``kernels/<name>``."""
+    if name not in _SOURCES:
+        path = kernel_dir() / name
+        try:
+            _SOURCES[name] = path.read_text(encoding="utf-8")
+        except FileNotFoundError as exc:
+            raise KernelBuildError(f"kernel source {name!r} not found in {path}") from exc
+    return _SOURCES[name]
+
+
+def build_options(dtype, defines: dict | None = None) -> list[str]:
+    dt = np.dtype(dtype)
+    if dt == np.float32:
+        opts = ["-D", "REAL=float", "-D", "REAL2=float2"]
+    elif dt == np.float64:
+        opts = ["-D", "REAL=double", "-D", "REAL2=double2", "-D", "REAL_IS_DOUBLE=1"]
+    else:
+        raise KernelBuildError(f"real type {dt} is not float32 or float64")
+    for k, v in sorted((defines or {}).items()):
+        opts += ["-D", f"{k}={v}"]
+    return opts
+
+
+def program(rt, name: str, dtype, defines: dict | None = None):
+    """The built program for ``kernels/<name>`` on runtime ``rt`` (cached)."""
+    import pyopencl as cl
+
+    opts = build_options(dtype, defines)
+    key = (name, tuple(opts))
+    prg = rt._programs.get(key)
+    if prg is None:
+        text = source("common.cl") + "\n#line 1\n" + source(name)
+        try:
+            prg = cl.Program(rt.context, text).build(options=opts)
+        except cl.RuntimeError as exc:  # build failure: pyopencl puts the log in the message
+            raise KernelBuildError(
+                f"OpenCL build of kernels/{name} failed on '{rt.caps.name}' "
+                f"(options {' '.join(opts)}):\n{exc}"
+            ) from exc
+        rt._programs[key] = prg
+        rt._programs[key + ("kernels",)] = {}
+    return prg
+
+
+def kernel(rt, name: str, kernel_name: str, dtype, defines: dict | None = None):
+    """A cached kernel object ``kernel_name`` from ``kernels/<name>``."""
+    prg = program(rt, name, dtype, defines)
+    kcache = rt._programs[(name, tuple(build_options(dtype, defines)), "kernels")]
+    k = kcache.get(kernel_name)
+    if k is None:
+        k = getattr(prg, kernel_name)
+        kcache[kernel_name] = k
+    return k
+
+
+def work_group_size(rt, k, cap: int = 256) -> int:
+    """Largest power of two <= the kernel's work-group limit on this device (and <= cap)."""
+    import pyopencl as cl
+
+    lim = k.get_work_group_info(cl.kernel_work_group_info.WORK_GROUP_SIZE, rt.device)
+    lim = min(int(lim), rt.caps.max_work_group_size, cap)
+    n = 1
+    while n * 2 <= lim:
+        n *= 2
+    return n

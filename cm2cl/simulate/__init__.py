@@ -1,0 +1,1 @@
+"""CM2 simulator: scenes, objects and effects."""

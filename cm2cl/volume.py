@@ -1,0 +1,74 @@
+"""Volumes on the device, stored per slab of depth planes.
+
+No device buffer may exceed the device's largest single allocation, so a (nz, py, px) volume
+is a list of slabs, each a contiguous pyopencl array of (planes, py, px).  Real volumes and
+their spectra share the same slab bounds, chosen from the larger (complex) plane.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .errors import DeviceError
+
+
+def slab_bounds(nz: int, plane_bytes: int, max_alloc: int, max_planes: int | None = None):
+    """Split nz planes into slabs of at most ``max_alloc`` bytes (and ``max_planes`` planes)."""
+    if plane_bytes > max_alloc:
+        raise DeviceError(
+            f"one depth plane needs {plane_bytes / 2**20:.1f} MiB but the device's largest buffer "
+            f"is {max_alloc / 2**20:.1f} MiB; bin the measurement or use lateral tiles"
+        )
+    per = max(1, max_alloc // plane_bytes)
+    if max_planes:
+        per = min(per, int(max_planes))
+    return [(z, min(z + per, nz)) for z in range(0, nz, per)]
+
+
+class Volume:
+    """A (nz, *plane_shape) array on the device as a list of slabs with the given bounds."""
+
+    def __init__(self, rt, bounds, plane_shape, dtype):
+        import pyopencl.array as cla
+
+        self.rt = rt
+        self.bounds = list(bounds)
+        self.plane_shape = tuple(int(s) for s in plane_shape)
+        self.dtype = np.dtype(dtype)
+        self.slabs = [cla.empty(rt.queue, (z1 - z0,) + self.plane_shape, self.dtype)
+                      for z0, z1 in self.bounds]
+
+    @property
+    def shape(self):
+        return (self.bounds[-1][1],) + self.plane_shape
+
+    @property
+    def nbytes(self) -> int:
+        return sum(s.nbytes for s in self.slabs)
+
+    def __iter__(self):
+        return iter(zip(self.bounds, self.slabs))
+
+    def set(self, host: np.ndarray):
+        host = np.ascontiguousarray(host, dtype=self.dtype)
+        for (z0, z1), s in self:
+            s.set(host[z0:z1])
+        return self
+
+    def get(self) -> np.ndarray:
+        out = np.empty(self.shape, self.dtype)
+        for (z0, z1), s in self:
+            s.get(ary=out[z0:z1])
+        return out
+
+    def fill(self, value=0):
+        for s in self.slabs:
+            s.fill(value)
+        return self
+
+    def copy_from(self, other: "Volume"):
+        import pyopencl as cl
+
+        for a, b in zip(self.slabs, other.slabs):
+            cl.enqueue_copy(self.rt.queue, a.data, b.data, byte_count=a.nbytes)
+        return self

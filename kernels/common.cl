@@ -1,0 +1,52 @@
+/* Shared definitions, prepended to every cm2cl kernel file by cm2cl/kernels.py.
+ *
+ * The real type comes from the build: -D REAL=float -D REAL2=float2 (or double/double2 with
+ * -D REAL_IS_DOUBLE).  Complex numbers are REAL2 (x = real part, y = imaginary part).
+ * No fast-math options are ever used, so NaN/Inf checks and IEEE rounding hold.
+ */
+#ifdef REAL_IS_DOUBLE
+#pragma OPENCL EXTENSION cl_khr_fp64 : enable
+#endif
+
+typedef REAL real_t;
+typedef REAL2 cplx_t;
+
+inline cplx_t cmul(cplx_t a, cplx_t b) {
+    return (cplx_t)(a.x * b.x - a.y * b.y, a.x * b.y + a.y * b.x);
+}
+
+/* conj(a) * b */
+inline cplx_t cmulc(cplx_t a, cplx_t b) {
+    return (cplx_t)(a.x * b.x + a.y * b.y, a.x * b.y - a.y * b.x);
+}
+
+/* Kahan-compensated accumulation: sum += v with running compensation c. */
+inline void kahan_add(real_t *sum, real_t *c, real_t v) {
+    real_t y = v - *c;
+    real_t t = *sum + y;
+    *c = (t - *sum) - y;
+    *sum = t;
+}
+
+inline void kahan_add2(cplx_t *sum, cplx_t *c, cplx_t v) {
+    cplx_t y = v - *c;
+    cplx_t t = *sum + y;
+    *c = (t - *sum) - y;
+    *sum = t;
+}
+
+/* Tree reduction of one value per work-item over the work-group, in local memory `scratch`
+ * (size = local size, a power of two).  Returns the group sum in work-item 0. */
+inline real_t group_sum(real_t v, __local real_t *scratch) {
+    const size_t lid = get_local_id(0);
+    const size_t n = get_local_size(0);
+    scratch[lid] = v;
+    barrier(CLK_LOCAL_MEM_FENCE);
+    for (size_t s = n / 2; s > 0; s >>= 1) {
+        if (lid < s) scratch[lid] += scratch[lid + s];
+        barrier(CLK_LOCAL_MEM_FENCE);
+    }
+    real_t r = scratch[0];
+    barrier(CLK_LOCAL_MEM_FENCE);
+    return r;
+}

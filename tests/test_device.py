@@ -1,0 +1,86 @@
+import pyopencl as cl
+import pytest
+
+from cm2cl import device
+from cm2cl.cli import main
+from cm2cl.errors import DeviceError
+
+
+def test_list_devices_records_capabilities(rt):
+    caps = device.list_devices()
+    assert caps, "at least the device of the rt fixture"
+    for c in caps:
+        assert c.global_mem > 0 and 0 < c.max_alloc <= c.global_mem
+        assert c.max_work_group_size >= 1 and c.compute_units >= 1
+        assert isinstance(c.fp64, bool)
+
+
+def test_select_by_index_env(rt, monkeypatch):
+    caps = device.list_devices()
+    last = caps[-1]
+    monkeypatch.setenv("CM2CL_DEVICE", str(last.index))
+    d = device.select_device()
+    assert d.name.strip() == last.name and d.platform.name.strip() == last.platform
+
+
+def test_select_by_name_fragment_env(rt, monkeypatch):
+    c = device.list_devices()[0]
+    frag = c.name.split()[0][-6:].upper()  # a case-insensitive fragment of the name
+    monkeypatch.setenv("CM2CL_DEVICE", frag)
+    assert frag.lower() in device.select_device().name.lower()
+
+
+def test_env_overrides_pyopencl_ctx(rt, monkeypatch):
+    caps = device.list_devices()
+    monkeypatch.setenv("PYOPENCL_CTX", "0:0")
+    monkeypatch.setenv("CM2CL_DEVICE", str(caps[-1].index))
+    assert device.select_device().name.strip() == caps[-1].name
+    monkeypatch.delenv("CM2CL_DEVICE")
+    first = cl.get_platforms()[0].get_devices()[0]
+    assert device.select_device().int_ptr == first.int_ptr
+
+
+def test_unknown_name_is_a_clear_error(rt, monkeypatch):
+    monkeypatch.setenv("CM2CL_DEVICE", "no-such-gpu-xyz")
+    with pytest.raises(DeviceError, match=r"CM2CL_DEVICE='no-such-gpu-xyz': no OpenCL device name matches"):
+        device.select_device()
+
+
+def test_index_out_of_range_is_a_clear_error(rt, monkeypatch):
+    monkeypatch.setenv("CM2CL_DEVICE", "99")
+    with pytest.raises(DeviceError, match="out of range"):
+        device.select_device()
+
+
+def test_no_device_message_says_how_to_get_pocl(monkeypatch, capsys):
+    monkeypatch.setattr(device, "_all_devices", lambda: ())
+    monkeypatch.delenv("CM2CL_DEVICE", raising=False)
+    monkeypatch.delenv("PYOPENCL_CTX", raising=False)
+    with pytest.raises(DeviceError, match="PoCL"):
+        device.select_device()
+    assert main(["devices"]) != 0
+    err = capsys.readouterr().err
+    assert "pocl" in err.lower() and "Traceback" not in err
+
+
+def test_scoring_prefers_gpus():
+    base = dict(index=0, name="x", platform="p", fp64=True, global_mem=2**30, max_alloc=2**28,
+                max_work_group_size=256, compute_units=4, local_mem=2**15, opencl_version="3.0")
+    cpu = device.Capabilities(**{**base, "kind": "CPU", "global_mem": 64 * 2**30, "compute_units": 64})
+    gpu = device.Capabilities(**{**base, "kind": "GPU"})
+    assert gpu.score > cpu.score
+
+
+def test_devices_command_prints_table(rt, capsys):
+    assert main(["devices"]) == 0
+    out = capsys.readouterr().out
+    assert "fp64" in out and "max buffer" in out and rt.caps.name in out
+
+
+def test_float64_refused_without_fp64(rt):
+    import numpy as np
+
+    fake = device.Runtime.__new__(device.Runtime)
+    fake.caps = device.Capabilities(**{**rt.caps.__dict__, "fp64": False})
+    with pytest.raises(DeviceError, match="no fp64 support"):
+        fake.check_dtype(np.float64)
