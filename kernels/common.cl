@@ -50,3 +50,20 @@ inline real_t group_sum(real_t v, __local real_t *scratch) {
     barrier(CLK_LOCAL_MEM_FENCE);
     return r;
 }
+
+/* Write the work-group sum of `v` to partials[slot * groups + group_id]; `first` != 0 overwrites,
+ * else adds (to accumulate over the slabs of a volume).  All work-items must call it. */
+inline void reduce_to(__global real_t *partials, __local real_t *scratch, real_t v,
+                      const int slot, const int first) {
+    const real_t t = group_sum(v, scratch);
+    if (get_local_id(0) == 0) {
+        const size_t j = (size_t)slot * get_num_groups(0) + get_group_id(0);
+        partials[j] = first ? t : partials[j] + t;
+    }
+}
+
+/* Index helpers for a slab of `planes` planes of ny x nx reals, element i = (z*ny + y)*nx + x. */
+#define SLAB_COORDS(i, ny, nx, z, y, x) \
+    const int x = (int)((i) % (size_t)(nx)); \
+    const int y = (int)(((i) / (size_t)(nx)) % (size_t)(ny)); \
+    const int z = (int)((i) / ((size_t)(nx) * (size_t)(ny)));

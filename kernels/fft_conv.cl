@@ -32,3 +32,16 @@ __kernel void spectral_conj_bcast(__global cplx_t *X, __global const cplx_t *H,
         X[j] = cmulc(H[j], v);
     }
 }
+
+/* Spectral power over depths:  hn2[k] (+)= sum_i |H[i, k]|^2  (first != 0 starts from zero). */
+__kernel void spectral_power(__global real_t *hn2, __global const cplx_t *H,
+                             const int planes, const ulong nfreq, const int first) {
+    const size_t k = get_global_id(0);
+    if (k >= nfreq) return;
+    real_t s = first ? (real_t)0 : hn2[k];
+    for (int i = 0; i < planes; ++i) {
+        const cplx_t h = H[(size_t)i * nfreq + k];
+        s += h.x * h.x + h.y * h.y;
+    }
+    hn2[k] = s;
+}

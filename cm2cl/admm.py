@@ -1,0 +1,292 @@
+"""The CM2 reconstruction (paper Eq. 4) by ADMM on an OpenCL device.
+
+    minimise 1/2 ||C H x - y||^2 + l1 ||x||_1 + tv TV_3D(x)   subject to x >= 0
+
+Splits (DESIGN.md section 3): v = Hx (crop-aware data step), w = x (l1 + non-negativity),
+u = x (TV prox by warm-started dual iterations), and the exact x step by Sherman-Morrison per
+lateral frequency. Every step is a kernel in ``kernels/``; inside the loop the only transfer
+between host and device is one small buffer of reduced scalars per iteration.
+The float64 numpy twin is :func:`cm2cl.reference.admm`.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from . import checks, kernels
+from .device import get_runtime
+from .errors import DeviceError, InputError
+from .forward import ForwardModel, choose_padded_shape, min_padded_shape
+from .fft import get_plan, resolve_backend
+from .params import ADMMParams, balance
+from .result import Reconstruction
+from .volume import Volume
+
+# Slots of the per-iteration reduction buffer.
+DX2, X2, L1, TV, RW2, SW2, RV2, SV2, DATA2, RU2, SU2 = range(11)
+NSLOTS = 11
+
+#: real volumes on the padded grid the solver keeps (x, x_old/scratch, u, w, eta, rho, px, py, pz)
+REAL_VOLUMES = 9
+
+
+def memory_estimate(nz, padded_shape, dtype, backend) -> dict:
+    """Bytes the solver allocates on the device (FFT libraries may add their own scratch)."""
+    py, px = padded_shape
+    item = np.dtype(dtype).itemsize
+    spec_plane = py * ((px // 2 + 1) if backend == "vkfft" else px) * 2 * item
+    real_plane = py * px * item
+    per_plane = REAL_VOLUMES * real_plane + 2 * spec_plane  # + x spectra + PSF spectra
+    fixed = 6 * real_plane + 4 * spec_plane  # planes: v, xi, hx, cty, r, psf tmp; R, S, comp, hn2
+    return {"per_plane": per_plane, "fixed": fixed, "total": nz * per_plane + fixed,
+            "real_volume": nz * real_plane, "psf_spectra": nz * spec_plane}
+
+
+def check_fits(rt, nz, padded_shape, dtype, backend, budget_fraction=0.9):
+    est = memory_estimate(nz, padded_shape, dtype, backend)
+    budget = int(rt.caps.global_mem * budget_fraction)
+    if est["total"] > budget:
+        fit = max(0, (budget - est["fixed"]) // est["per_plane"])
+        raise DeviceError(
+            f"problem too large for device '{rt.caps.name}': {nz} planes on a "
+            f"{padded_shape[0]} x {padded_shape[1]} padded grid need {est['total'] / 2**30:.2f} GiB, "
+            f"the device offers {budget / 2**30:.2f} GiB; {fit} planes fit at this size "
+            "(use fewer planes, bin the measurement, or depth slabs over devices)"
+        )
+    return est
+
+
+class ADMMSolver:
+    """Device state of one reconstruction problem (PSF stack + parameters)."""
+
+    def __init__(self, psf, params: ADMMParams, *, dtype=np.float32, backend="auto", device=None,
+                 padded_shape=None, max_slab_planes=None):
+        psf = checks.psf_stack(psf, "psf")
+        self.p = params
+        self.rt = rt = get_runtime(device)
+        self.dtype = rt.check_dtype(dtype)
+        self.backend = resolve_backend(backend)
+        sensor = psf.shape[1:]
+        P = tuple(padded_shape) if padded_shape is not None else choose_padded_shape(sensor, self.backend)
+        if any(p < n for p, n in zip(P, min_padded_shape(sensor))):
+            raise InputError(f"padded_shape: {P} is smaller than 2*sensor-1 = {min_padded_shape(sensor)}")
+        self.memory = check_fits(rt, psf.shape[0], P, self.dtype, self.backend)
+        self.model = m = ForwardModel(psf, dtype=self.dtype, backend=self.backend, device=rt,
+                                      padded_shape=P, max_slab_planes=max_slab_planes)
+        self.P, self.M, self.nz = m.padded_shape, m.sensor_shape, m.nz
+        k = lambda f, n: kernels.kernel(rt, f, n, self.dtype)  # noqa: E731
+        self.k = {n: k(f, n) for f, n in [
+            ("fft_conv.cl", "spectral_power"), ("xstep.cl", "rhs_volume"), ("xstep.cl", "rhs_plane"),
+            ("xstep.cl", "xstep_accumulate"), ("xstep.cl", "xstep_hx"), ("xstep.cl", "xstep_solve"),
+            ("splits.cl", "update_w"), ("splits.cl", "update_v"), ("tv.cl", "tv_residual"),
+            ("tv.cl", "tv_dual_step"), ("tv.cl", "tv_finish"), ("reduce.cl", "reduce_partials")]}
+        self.groups = int(min(512, max(8, 8 * rt.caps.compute_units)))
+        self.local = {n: kernels.work_group_size(rt, self.k[n])
+                      for n in ("update_w", "update_v", "tv_finish", "reduce_partials")}
+
+        # ||H|| = 1 normalisation from the spectral power, computed on the device once.
+        self.hn2 = Volume(rt, [(0, 1)], m.spec_plane, self.dtype)
+        nf = np.uint64(m.nfreq)
+        for first, ((z0, z1), hs) in zip([1] + [0] * len(m.bounds), m.psf_spectra):
+            self.k["spectral_power"](rt.queue, (m.nfreq,), None, self.hn2.slabs[0].data, hs.data,
+                                     np.int32(z1 - z0), nf, np.int32(first))
+        hmax = float(self.hn2.slabs[0].get().max())
+        self.psf_scale = 1.0 / np.sqrt(hmax) if params.normalize else 1.0
+        if params.normalize:
+            for hs in m.psf_spectra.slabs:
+                hs *= self.dtype.type(self.psf_scale)
+            self.hn2.slabs[0] *= self.dtype.type(self.psf_scale**2)
+
+        vol = m.new_volume
+        self.x, self.g, self.u, self.w, self.eta, self.rho = (vol() for _ in range(6))
+        self.pd = [vol() for _ in range(3)]
+        self.spec = m.new_spectrum_volume()
+        plane = lambda: Volume(rt, [(0, 1)], self.P, self.dtype)  # noqa: E731
+        self.v, self.xi, self.hx, self.cty, self.r = (plane() for _ in range(5))
+        splane = lambda: Volume(rt, [(0, 1)], m.spec_plane, m.cdtype)  # noqa: E731
+        self.R, self.S, self.comp = (splane() for _ in range(3))
+        import pyopencl.array as cla
+        self.partials = cla.zeros(rt.queue, NSLOTS * self.groups, self.dtype)
+        self.out = cla.zeros(rt.queue, NSLOTS, self.dtype)
+        self.allocated_bytes = sum(a.nbytes for a in (
+            [m.psf_spectra, self.hn2, self.x, self.g, self.u, self.w, self.eta, self.rho, self.spec,
+             self.v, self.xi, self.hx, self.cty, self.r, self.R, self.S, self.comp] + self.pd)) \
+            + self.partials.nbytes + self.out.nbytes
+        self._plan2d = get_plan(rt, self.P, 1, self.dtype, self.backend)
+
+    # ---- launch helpers --------------------------------------------------------------------
+    def _ew(self, name, n, *args):
+        self.k[name](self.rt.queue, (int(n),), None, *args)
+
+    def _red(self, name, *args):
+        L = self.local[name]
+        self.k[name](self.rt.queue, (self.groups * L,), (L,), *args)
+
+    def _loc(self, name):
+        import pyopencl as cl
+        return cl.LocalMemory(self.local[name] * self.dtype.itemsize)
+
+    # ---- one reconstruction -----------------------------------------------------------------
+    def run(self, y, callback=None, callback_every=1) -> Reconstruction:
+        y = checks.real_array(y, "measurement", ndims=(2,))
+        if y.shape != self.M:
+            raise InputError(f"measurement: shape {y.shape} does not match the PSF's sensor grid {self.M}")
+        ymax = float(np.max(y))
+        if self.p.normalize and not ymax > 0:
+            raise InputError("measurement: has no positive value (check the offset subtraction)")
+        y_scale = 1.0 / ymax if self.p.normalize else 1.0
+        p, m, rt, q, R = self.p, self.model, self.rt, self.rt.queue, self.dtype.type
+        I = np.int32  # noqa: E741
+        ny, nx = self.P
+        my, mx = self.M
+        oy, ox = m.offsets
+        for a in [self.x, self.u, self.w, self.eta, self.rho, self.v, self.xi] + self.pd:
+            a.fill(0)
+        sensor = Volume(rt, [(0, 1)], self.M, self.dtype).set((y * y_scale)[None])
+        m.embed_from_sensor(sensor.slabs[0], self.cty.slabs[0])
+        nf = np.uint64(m.nfreq)
+        nplane = np.uint64(ny * nx)
+        bounds = m.bounds
+        nslab = len(bounds)
+        mu_v, mu_u, mu_w = p.mu_v, p.mu_u, p.mu_w
+        aw, iso = R(p.tv_axial_weight), I(1 if p.tv_isotropic else 0)
+        step = R(p.tv_step)
+        log, calm, stop = [], 0, "max_iter"
+        t0 = time.perf_counter()
+        for it in range(1, p.max_iter + 1):
+            c = mu_u + mu_w
+            # ---- x step
+            for (z0, z1), gs, us, es, ws, rs, ss in zip(bounds, self.g.slabs, self.u.slabs, self.eta.slabs,
+                                                        self.w.slabs, self.rho.slabs, self.spec.slabs):
+                self._ew("rhs_volume", gs.size, gs.data, us.data, es.data, ws.data, rs.data,
+                         R(mu_u), R(mu_w), np.uint64(gs.size))
+                m.plan(z1 - z0).forward(gs, ss)
+            self._ew("rhs_plane", ny * nx, self.r.slabs[0].data, self.v.slabs[0].data,
+                     self.xi.slabs[0].data, R(mu_v), nplane)
+            self._plan2d.forward(self.r.slabs[0], self.R.slabs[0])
+            for j, ((z0, z1), ss, hs) in enumerate(zip(bounds, self.spec.slabs, m.psf_spectra.slabs)):
+                self._ew("xstep_accumulate", m.nfreq, ss.data, hs.data, self.R.slabs[0].data,
+                         self.S.slabs[0].data, self.comp.slabs[0].data, I(z1 - z0), nf, I(j == 0))
+            self._ew("xstep_hx", m.nfreq, self.S.slabs[0].data, self.hn2.slabs[0].data, R(c), R(mu_v), nf)
+            for (z0, z1), ss, hs, gs in zip(bounds, self.spec.slabs, m.psf_spectra.slabs, self.g.slabs):
+                self._ew("xstep_solve", m.nfreq, ss.data, hs.data, self.S.slabs[0].data, R(c), R(mu_v),
+                         I(z1 - z0), nf)
+                m.plan(z1 - z0).inverse(ss, gs)
+            self._plan2d.inverse(self.S.slabs[0], self.hx.slabs[0])
+            self.x, self.g = self.g, self.x  # x: new iterate, g: previous one (then scratch)
+            # ---- w split (+ objective terms of x)
+            for j, ((z0, z1), xs, gs, ws, rs) in enumerate(zip(bounds, self.x.slabs, self.g.slabs,
+                                                              self.w.slabs, self.rho.slabs)):
+                has_next = j + 1 < nslab
+                xn = self.x.slabs[j + 1] if has_next else xs
+                self._red("update_w", xs.data, xn.data, I(has_next), gs.data, ws.data, rs.data,
+                          R(p.l1), R(mu_w), aw, iso, I(z1 - z0), I(ny), I(nx),
+                          self.partials.data, self._loc("update_w"), I(DX2), I(j == 0))
+            # ---- v split
+            self._red("update_v", self.v.slabs[0].data, self.xi.slabs[0].data, self.hx.slabs[0].data,
+                      self.cty.slabs[0].data, R(mu_v), I(ny), I(nx), I(my), I(mx), I(oy), I(ox),
+                      self.partials.data, self._loc("update_v"), I(RV2))
+            # ---- u split (TV)
+            tau = p.tv / mu_u
+            px_, py_, pz_ = self.pd
+            if tau > 0:
+                for _ in range(p.tv_iters):
+                    for j, (z0, z1) in enumerate(bounds):
+                        hp, hn = j > 0, j + 1 < nslab
+                        prev = pz_.slabs[j - 1] if hp else pz_.slabs[j]
+                        self._ew("tv_residual", self.g.slabs[j].size, self.g.slabs[j].data,
+                                 px_.slabs[j].data, py_.slabs[j].data, pz_.slabs[j].data, prev.data,
+                                 I(hp), I(prev.shape[0]), I(hn), self.x.slabs[j].data,
+                                 self.eta.slabs[j].data, R(1.0 / mu_u), R(1.0 / tau), aw,
+                                 I(z1 - z0), I(ny), I(nx))
+                    for j, (z0, z1) in enumerate(bounds):
+                        hn = j + 1 < nslab
+                        gn = self.g.slabs[j + 1] if hn else self.g.slabs[j]
+                        self._ew("tv_dual_step", self.g.slabs[j].size, px_.slabs[j].data,
+                                 py_.slabs[j].data, pz_.slabs[j].data, self.g.slabs[j].data, gn.data,
+                                 I(hn), step, aw, iso, I(z1 - z0), I(ny), I(nx))
+            for j, (z0, z1) in enumerate(bounds):
+                hp, hn = j > 0, j + 1 < nslab
+                prev = pz_.slabs[j - 1] if hp else pz_.slabs[j]
+                self._red("tv_finish", self.u.slabs[j].data, self.eta.slabs[j].data, self.x.slabs[j].data,
+                          px_.slabs[j].data, py_.slabs[j].data, pz_.slabs[j].data, prev.data, I(hp),
+                          I(prev.shape[0]), I(hn), R(mu_u), R(tau), aw, I(z1 - z0), I(ny), I(nx),
+                          self.partials.data, self._loc("tv_finish"), I(RU2), I(j == 0))
+            # ---- the scalars of this iteration: one small read
+            L = self.local["reduce_partials"]
+            self.k["reduce_partials"](q, (NSLOTS * L,), (L,), self.partials.data, self.out.data,
+                                      I(self.groups), self._loc("reduce_partials"))
+            s = self.out.get().astype(np.float64)
+            r_v, s_v = np.sqrt(s[RV2]), mu_v * np.sqrt(s[SV2])
+            r_u, s_u = np.sqrt(s[RU2]), mu_u * np.sqrt(s[SU2])
+            r_w, s_w = np.sqrt(s[RW2]), mu_w * np.sqrt(s[SW2])
+            data = 0.5 * s[DATA2]
+            rel = np.sqrt(s[DX2]) / max(np.sqrt(s[X2]), 1e-300)
+            row = dict(iter=it, objective=data + p.l1 * s[L1] + p.tv * s[TV], data=data, l1=s[L1],
+                       tv=s[TV], rel_change=float(rel), primal=float(np.sqrt(r_v**2 + r_u**2 + r_w**2)),
+                       dual=float(np.sqrt(s_v**2 + s_u**2 + s_w**2)), r_v=float(r_v), s_v=float(s_v),
+                       r_u=float(r_u), s_u=float(s_u), r_w=float(r_w), s_w=float(s_w),
+                       mu_v=mu_v, mu_u=mu_u, mu_w=mu_w, seconds=time.perf_counter() - t0)
+            row = {k: float(v) if k != "iter" else v for k, v in row.items()}
+            if not np.isfinite(row["objective"]):
+                raise DeviceError(f"iteration {it}: the objective is not finite ({row['objective']}); "
+                                  "the device computation diverged")
+            log.append(row)
+            if callback is not None and (it % max(1, callback_every) == 0 or it == p.max_iter):
+                callback(row)
+            mu_v = balance(mu_v, r_v, s_v, p)
+            mu_u = balance(mu_u, r_u, s_u, p)
+            mu_w = balance(mu_w, r_w, s_w, p)
+            calm = calm + 1 if rel < p.tol else 0
+            if calm >= p.patience:
+                stop = "tol"
+                break
+            if p.tol_residual > 0 and max(r_v, s_v, r_u, s_u, r_w, s_w) < p.tol_residual:
+                stop = "tol_residual"
+                break
+        x = self.x.get()
+        vol = np.maximum(x, 0) * (self.psf_scale / y_scale)
+        return Reconstruction(
+            volume_padded=vol, crop=m.crop, log=log,
+            scaling={"psf_scale": float(self.psf_scale), "y_scale": float(y_scale)},
+            params=p.as_dict(),
+            info={"device": rt.caps.name, "platform": rt.caps.platform, "dtype": self.dtype.name,
+                  "backend": self.backend, "padded_shape": self.P, "slabs": len(bounds), "stop": stop,
+                  "device_bytes": int(self.allocated_bytes)})
+
+
+def reconstruct(measurement, psf, *, dtype=np.float32, backend="auto", device=None,
+                padded_shape=None, max_slab_planes=None, callback=None, callback_every=1,
+                **params) -> Reconstruction:
+    """Reconstruct a 3D volume from one CM2 measurement (paper Eq. 4) on an OpenCL device.
+
+    Parameters
+    ----------
+    measurement : (My, Mx) float array, camera offset removed.
+    psf : (nz, My, Mx) float array, one PSF per depth plane on the same sensor grid.
+    dtype : float32 (default) or float64 (devices with fp64 only).
+    backend : FFT backend, 'auto', 'vkfft' or 'reikna'.
+    device : index, name fragment, pyopencl Device or Runtime (default: see cm2cl.device).
+    padded_shape : padded grid (Py, Px) >= 2M - 1 (default: the backend's fast size).
+    callback : called with the log row every `callback_every` iterations.
+    **params : fields of :class:`cm2cl.params.ADMMParams` (l1, tv, tv_axial_weight, max_iter, tol, ...).
+
+    Returns
+    -------
+    Reconstruction with ``.volume`` (nz, My, Mx) on the sensor field of view, ``.volume_padded``,
+    ``.log`` and ``.scaling``.
+    """
+    prm = ADMMParams.from_kwargs(**params)
+    psf = checks.psf_stack(psf, "psf")
+    y = checks.real_array(measurement, "measurement", ndims=(2,))
+    if y.shape != psf.shape[1:]:
+        raise InputError(f"measurement: shape {y.shape} does not match the PSF's sensor grid "
+                         f"{psf.shape[1:]} (psf shape {psf.shape})")
+    solver = ADMMSolver(psf, prm, dtype=dtype, backend=backend, device=device,
+                        padded_shape=padded_shape, max_slab_planes=max_slab_planes)
+    return solver.run(y, callback=callback, callback_every=callback_every)
+
+
+__all__ = ["ADMMSolver", "reconstruct", "memory_estimate"]

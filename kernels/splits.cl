@@ -1,0 +1,82 @@
+/* The w split (l1 + non-negativity) and the v split (crop-aware data term) of the ADMM, each
+ * fused with its dual update and with the reductions the log and the stopping rule need.
+ * Reductions use a grid-stride loop over the slab (global size = groups * local size). */
+
+/* TV integrand of x at element i of a slab (forward differences, Neumann boundary). */
+inline real_t tv_at(__global const real_t *x, __global const real_t *x_next, const int has_next,
+                    const size_t i, const int z, const int y, const int xx,
+                    const int planes, const int ny, const int nx, const real_t aw, const int iso) {
+    const size_t plane = (size_t)ny * nx;
+    const real_t c = x[i];
+    const real_t gx = (xx < nx - 1) ? x[i + 1] - c : (real_t)0;
+    const real_t gy = (y < ny - 1) ? x[i + nx] - c : (real_t)0;
+    real_t gz = 0;
+    if (z < planes - 1) gz = aw * (x[i + plane] - c);
+    else if (has_next) gz = aw * (x_next[i - (size_t)z * plane] - c);
+    return iso ? sqrt(gx * gx + gy * gy + gz * gz) : fabs(gx) + fabs(gy) + fabs(gz);
+}
+
+/* After the x step, for one slab of `planes` planes:
+ *   w' = max(x + rho/mu_w - l1/mu_w, 0);  rho += mu_w (x - w');  w = w'
+ * Reduces into slots slot0 + (0..5): ||x - x_old||^2, ||x||^2, sum|x|, TV(x), ||x - w'||^2, ||w' - w||^2.
+ * x_next is the next slab of x (for the axial difference across slabs) when has_next. */
+__kernel void update_w(__global const real_t *x, __global const real_t *x_next, const int has_next,
+                       __global const real_t *x_old, __global real_t *w, __global real_t *rho,
+                       const real_t l1, const real_t mu_w, const real_t aw, const int iso,
+                       const int planes, const int ny, const int nx,
+                       __global real_t *partials, __local real_t *scratch,
+                       const int slot0, const int first) {
+    const size_t n = (size_t)planes * ny * nx;
+    real_t a0 = 0, a1 = 0, a2 = 0, a3 = 0, a4 = 0, a5 = 0;
+    real_t c0 = 0, c1 = 0, c2 = 0, c3 = 0, c4 = 0, c5 = 0;
+    const real_t inv_mu = (real_t)1 / mu_w;
+    for (size_t i = get_global_id(0); i < n; i += get_global_size(0)) {
+        SLAB_COORDS(i, ny, nx, z, y, xx)
+        const real_t xi = x[i];
+        const real_t r = rho[i];
+        const real_t wn = fmax(xi + (r - l1) * inv_mu, (real_t)0);
+        const real_t dx = xi - x_old[i], pw = xi - wn, dw = wn - w[i];
+        rho[i] = r + mu_w * pw;
+        w[i] = wn;
+        kahan_add(&a0, &c0, dx * dx);
+        kahan_add(&a1, &c1, xi * xi);
+        kahan_add(&a2, &c2, fabs(xi));
+        kahan_add(&a3, &c3, tv_at(x, x_next, has_next, i, z, y, xx, planes, ny, nx, aw, iso));
+        kahan_add(&a4, &c4, pw * pw);
+        kahan_add(&a5, &c5, dw * dw);
+    }
+    reduce_to(partials, scratch, a0, slot0 + 0, first);
+    reduce_to(partials, scratch, a1, slot0 + 1, first);
+    reduce_to(partials, scratch, a2, slot0 + 2, first);
+    reduce_to(partials, scratch, a3, slot0 + 3, first);
+    reduce_to(partials, scratch, a4, slot0 + 4, first);
+    reduce_to(partials, scratch, a5, slot0 + 5, first);
+}
+
+/* The v split on the padded plane (py, px), sensor window (my, mx) at (oy, ox):
+ *   v' = (C^T y + mu_v hx + xi) / (C^T C + mu_v);  xi += mu_v (hx - v');  v = v'
+ * cty = C^T y (zero outside the window), hx = H x.
+ * Reduces into slots slot0 + (0..2): ||hx - v'||^2, ||v' - v||^2, ||C hx - y||^2. */
+__kernel void update_v(__global real_t *v, __global real_t *xi, __global const real_t *hx,
+                       __global const real_t *cty, const real_t mu_v,
+                       const int py, const int px, const int my, const int mx,
+                       const int oy, const int ox,
+                       __global real_t *partials, __local real_t *scratch, const int slot0) {
+    const size_t n = (size_t)py * px;
+    real_t a0 = 0, a1 = 0, a2 = 0, c0 = 0, c1 = 0, c2 = 0;
+    for (size_t i = get_global_id(0); i < n; i += get_global_size(0)) {
+        const int r = (int)(i / (size_t)px), c = (int)(i % (size_t)px);
+        const int inside = (r >= oy && r < oy + my && c >= ox && c < ox + mx);
+        const real_t h = hx[i];
+        const real_t vn = (cty[i] + mu_v * h + xi[i]) / ((inside ? (real_t)1 : (real_t)0) + mu_v);
+        const real_t pv = h - vn, dv = vn - v[i];
+        xi[i] += mu_v * pv;
+        v[i] = vn;
+        kahan_add(&a0, &c0, pv * pv);
+        kahan_add(&a1, &c1, dv * dv);
+        if (inside) { const real_t d = h - cty[i]; kahan_add(&a2, &c2, d * d); }
+    }
+    reduce_to(partials, scratch, a0, slot0 + 0, 1);
+    reduce_to(partials, scratch, a1, slot0 + 1, 1);
+    reduce_to(partials, scratch, a2, slot0 + 2, 1);
+}

@@ -1,0 +1,60 @@
+/* The closed-form x step of the ADMM (DESIGN.md section 3):
+ *     (mu_v H^T H + c I) x = H^T (mu_v v - xi) + (mu_u u - eta) + (mu_w w - rho),  c = mu_u + mu_w
+ * Per lateral frequency k, H^T H = a a^H with a_i = conj(H_i(k)), so by Sherman-Morrison
+ *     X_i = (B_i - mu_v conj(H_i) HX) / c,   HX = (sum_i H_i B_i) / (c + mu_v sum_i |H_i|^2)
+ * and HX is also the spectrum of H x.  Spectra: `planes` planes of `nfreq` complex values. */
+
+/* Right-hand side in the object domain:  t = mu_u u - eta + mu_w w - rho  (n reals). */
+__kernel void rhs_volume(__global real_t *t, __global const real_t *u, __global const real_t *eta,
+                         __global const real_t *w, __global const real_t *rho,
+                         const real_t mu_u, const real_t mu_w, const ulong n) {
+    const size_t i = get_global_id(0);
+    if (i < n) t[i] = mu_u * u[i] - eta[i] + mu_w * w[i] - rho[i];
+}
+
+/* Right-hand side of the v split (one padded plane):  r = mu_v v - xi. */
+__kernel void rhs_plane(__global real_t *r, __global const real_t *v, __global const real_t *xi,
+                        const real_t mu_v, const ulong n) {
+    const size_t i = get_global_id(0);
+    if (i < n) r[i] = mu_v * v[i] - xi[i];
+}
+
+/* B_i = conj(H_i) R + T_i, written over T;  S (+)= sum_i H_i B_i (Kahan, carried in comp). */
+__kernel void xstep_accumulate(__global cplx_t *T, __global const cplx_t *H, __global const cplx_t *R,
+                               __global cplx_t *S, __global cplx_t *comp,
+                               const int planes, const ulong nfreq, const int first) {
+    const size_t k = get_global_id(0);
+    if (k >= nfreq) return;
+    const cplx_t r = R[k];
+    cplx_t s = (cplx_t)(0, 0), c = (cplx_t)(0, 0);
+    if (!first) { s = S[k]; c = comp[k]; }
+    for (int i = 0; i < planes; ++i) {
+        const size_t j = (size_t)i * nfreq + k;
+        const cplx_t h = H[j];
+        const cplx_t b = cmulc(h, r) + T[j];
+        T[j] = b;
+        kahan_add2(&s, &c, cmul(h, b));
+    }
+    S[k] = s;
+    comp[k] = c;
+}
+
+/* HX = S / (c + mu_v hn2), in place over S. */
+__kernel void xstep_hx(__global cplx_t *S, __global const real_t *hn2,
+                       const real_t c, const real_t mu_v, const ulong nfreq) {
+    const size_t k = get_global_id(0);
+    if (k < nfreq) S[k] = S[k] / (c + mu_v * hn2[k]);
+}
+
+/* X_i = (B_i - mu_v conj(H_i) HX) / c, in place over B. */
+__kernel void xstep_solve(__global cplx_t *B, __global const cplx_t *H, __global const cplx_t *HX,
+                          const real_t c, const real_t mu_v, const int planes, const ulong nfreq) {
+    const size_t k = get_global_id(0);
+    if (k >= nfreq) return;
+    const cplx_t hx = HX[k];
+    const real_t inv_c = (real_t)1 / c;
+    for (int i = 0; i < planes; ++i) {
+        const size_t j = (size_t)i * nfreq + k;
+        B[j] = (B[j] - mu_v * cmulc(H[j], hx)) * inv_c;
+    }
+}
