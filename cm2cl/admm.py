@@ -128,6 +128,32 @@ class ADMMSolver:
         import pyopencl as cl
         return cl.LocalMemory(self.local[name] * self.dtype.itemsize)
 
+    def x_step(self, mu_v, mu_u, mu_w):
+        """Solve (mu_v H^T H + (mu_u + mu_w) I) x = H^T (mu_v v - xi) + (mu_u u - eta) + (mu_w w - rho)
+        exactly: the solution goes to ``self.g`` and H x (padded plane) to ``self.hx``."""
+        m, R, I = self.model, self.dtype.type, np.int32  # noqa: E741
+        ny, nx = self.P
+        nf = np.uint64(m.nfreq)
+        bounds = m.bounds
+        c = mu_u + mu_w
+        for (z0, z1), gs, us, es, ws, rs, ss in zip(bounds, self.g.slabs, self.u.slabs, self.eta.slabs,
+                                                    self.w.slabs, self.rho.slabs, self.spec.slabs):
+            self._ew("rhs_volume", gs.size, gs.data, us.data, es.data, ws.data, rs.data,
+                     R(mu_u), R(mu_w), np.uint64(gs.size))
+            m.plan(z1 - z0).forward(gs, ss)
+        self._ew("rhs_plane", ny * nx, self.r.slabs[0].data, self.v.slabs[0].data,
+                 self.xi.slabs[0].data, R(mu_v), np.uint64(ny * nx))
+        self._plan2d.forward(self.r.slabs[0], self.R.slabs[0])
+        for j, ((z0, z1), ss, hs) in enumerate(zip(bounds, self.spec.slabs, m.psf_spectra.slabs)):
+            self._ew("xstep_accumulate", m.nfreq, ss.data, hs.data, self.R.slabs[0].data,
+                     self.S.slabs[0].data, self.comp.slabs[0].data, I(z1 - z0), nf, I(j == 0))
+        self._ew("xstep_hx", m.nfreq, self.S.slabs[0].data, self.hn2.slabs[0].data, R(c), R(mu_v), nf)
+        for (z0, z1), ss, hs, gs in zip(bounds, self.spec.slabs, m.psf_spectra.slabs, self.g.slabs):
+            self._ew("xstep_solve", m.nfreq, ss.data, hs.data, self.S.slabs[0].data, R(c), R(mu_v),
+                     I(z1 - z0), nf)
+            m.plan(z1 - z0).inverse(ss, gs)
+        self._plan2d.inverse(self.S.slabs[0], self.hx.slabs[0])
+
     # ---- one reconstruction -----------------------------------------------------------------
     def run(self, y, callback=None, callback_every=1) -> Reconstruction:
         y = checks.real_array(y, "measurement", ndims=(2,))
@@ -146,8 +172,6 @@ class ADMMSolver:
             a.fill(0)
         sensor = Volume(rt, [(0, 1)], self.M, self.dtype).set((y * y_scale)[None])
         m.embed_from_sensor(sensor.slabs[0], self.cty.slabs[0])
-        nf = np.uint64(m.nfreq)
-        nplane = np.uint64(ny * nx)
         bounds = m.bounds
         nslab = len(bounds)
         mu_v, mu_u, mu_w = p.mu_v, p.mu_u, p.mu_w
@@ -156,25 +180,7 @@ class ADMMSolver:
         log, calm, stop = [], 0, "max_iter"
         t0 = time.perf_counter()
         for it in range(1, p.max_iter + 1):
-            c = mu_u + mu_w
-            # ---- x step
-            for (z0, z1), gs, us, es, ws, rs, ss in zip(bounds, self.g.slabs, self.u.slabs, self.eta.slabs,
-                                                        self.w.slabs, self.rho.slabs, self.spec.slabs):
-                self._ew("rhs_volume", gs.size, gs.data, us.data, es.data, ws.data, rs.data,
-                         R(mu_u), R(mu_w), np.uint64(gs.size))
-                m.plan(z1 - z0).forward(gs, ss)
-            self._ew("rhs_plane", ny * nx, self.r.slabs[0].data, self.v.slabs[0].data,
-                     self.xi.slabs[0].data, R(mu_v), nplane)
-            self._plan2d.forward(self.r.slabs[0], self.R.slabs[0])
-            for j, ((z0, z1), ss, hs) in enumerate(zip(bounds, self.spec.slabs, m.psf_spectra.slabs)):
-                self._ew("xstep_accumulate", m.nfreq, ss.data, hs.data, self.R.slabs[0].data,
-                         self.S.slabs[0].data, self.comp.slabs[0].data, I(z1 - z0), nf, I(j == 0))
-            self._ew("xstep_hx", m.nfreq, self.S.slabs[0].data, self.hn2.slabs[0].data, R(c), R(mu_v), nf)
-            for (z0, z1), ss, hs, gs in zip(bounds, self.spec.slabs, m.psf_spectra.slabs, self.g.slabs):
-                self._ew("xstep_solve", m.nfreq, ss.data, hs.data, self.S.slabs[0].data, R(c), R(mu_v),
-                         I(z1 - z0), nf)
-                m.plan(z1 - z0).inverse(ss, gs)
-            self._plan2d.inverse(self.S.slabs[0], self.hx.slabs[0])
+            self.x_step(mu_v, mu_u, mu_w)
             self.x, self.g = self.g, self.x  # x: new iterate, g: previous one (then scratch)
             # ---- w split (+ objective terms of x)
             for j, ((z0, z1), xs, gs, ws, rs) in enumerate(zip(bounds, self.x.slabs, self.g.slabs,

@@ -218,3 +218,31 @@ def admm(y, psf, params=None, padded_shape=None, dtype=np.float64, workers=None,
                           log=log, scaling={"psf_scale": s_h, "y_scale": s_y},
                           params=p.as_dict(), info={"device": "numpy", "dtype": dt.name, "stop": stop,
                                                     "padded_shape": P})
+
+
+# ---- spatial-domain operators (no FFT), to check Fourier-domain formulas against ---------
+def _psf_taps(psf):
+    psf = np.asarray(psf, np.float64)
+    psf = psf[None] if psf.ndim == 2 else psf
+    cy, cx = psf.shape[1] // 2, psf.shape[2] // 2
+    return psf, cy, cx
+
+
+def convolve_spatial(psf, x, padded_shape=None) -> np.ndarray:
+    """sum_i h_i (*) x_i by explicit circular shifts on the padded grid (small sizes only)."""
+    psf, cy, cx = _psf_taps(psf)
+    out = np.zeros(x.shape[1:])
+    for i in range(psf.shape[0]):
+        for a, b in zip(*np.nonzero(psf[i])):
+            out += psf[i, a, b] * np.roll(x[i], (a - cy, b - cx), axis=(0, 1))
+    return out
+
+
+def correlate_spatial(psf, v) -> np.ndarray:
+    """The adjoint of convolve_spatial: x_i = h_i correlated with the padded plane v."""
+    psf, cy, cx = _psf_taps(psf)
+    out = np.zeros((psf.shape[0],) + v.shape)
+    for i in range(psf.shape[0]):
+        for a, b in zip(*np.nonzero(psf[i])):
+            out[i] += psf[i, a, b] * np.roll(v, (cy - a, cx - b), axis=(0, 1))
+    return out

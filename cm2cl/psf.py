@@ -1,0 +1,48 @@
+"""Preparing measured images and PSF stacks: camera offset, binning, normalisation."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .errors import InputError
+
+
+def bin_image(a, factor: int, name: str = "image") -> np.ndarray:
+    """Sum-bin the last two axes by ``factor`` (trailing rows/columns that do not fill a bin
+    are dropped). Returns float64."""
+    f = int(factor)
+    if f < 1:
+        raise InputError(f"bin: factor must be an integer >= 1, got {factor!r}")
+    a = np.asarray(a, np.float64)
+    if f == 1:
+        return a
+    ny, nx = a.shape[-2] // f, a.shape[-1] // f
+    if ny == 0 or nx == 0:
+        raise InputError(f"{name}: shape {a.shape} is smaller than the bin factor {f}")
+    a = a[..., : ny * f, : nx * f]
+    return a.reshape(a.shape[:-2] + (ny, f, nx, f)).sum(axis=(-3, -1))
+
+
+def estimate_offset(img, region=(slice(5, 15), slice(5, 15))) -> float:
+    """Camera offset (dark level) as the mean of a dark corner of the image (last two axes)."""
+    img = np.asarray(img, np.float64)
+    return float(img[(Ellipsis,) + tuple(region)].mean())
+
+
+def subtract_offset(img, offset: float, clip: bool = True) -> np.ndarray:
+    out = np.asarray(img, np.float64) - float(offset)
+    return np.maximum(out, 0.0) if clip else out
+
+
+def prepare(img, *, offset="auto", bin_factor: int = 1, name: str = "image") -> np.ndarray:
+    """Offset subtraction (``'auto'``: the mean of pixels [5:15, 5:15]; a number; or None)
+    followed by binning. Returns float64 >= 0."""
+    img = np.asarray(img)
+    if img.dtype.kind not in "uif":
+        raise InputError(f"{name}: dtype {img.dtype} is not numeric")
+    if img.dtype.kind == "f" and not np.isfinite(img).all():
+        raise InputError(f"{name}: contains NaN/Inf values")
+    if offset == "auto":
+        offset = estimate_offset(img)
+    out = subtract_offset(img, offset) if offset is not None else np.asarray(img, np.float64)
+    return bin_image(out, bin_factor, name)
