@@ -41,7 +41,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _registrars():
     """Sub-commands that live beside their own concern."""
-    return []
+    from .recon_cli import register as reconstruct
+
+    return [reconstruct]
 
 
 def main(argv=None) -> int:
