@@ -35,3 +35,9 @@ __kernel void embed(__global real_t *dst, __global const real_t *src,
     if (sr >= 0 && sr < my && sc >= 0 && sc < mx) v = src[((size_t)k * my + sr) * mx + sc];
     dst[((size_t)k * py + r) * px + c] = v;
 }
+
+/* dst[i] = src[i]: a plain copy, used to measure the device's memory bandwidth. */
+__kernel void copy_real(__global real_t *dst, __global const real_t *src, const ulong n) {
+    const size_t i = get_global_id(0);
+    if (i < n) dst[i] = src[i];
+}

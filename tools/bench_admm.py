@@ -1,0 +1,91 @@
+"""Seconds per ADMM iteration and device memory on the current OpenCL device, against the float32
+numpy/scipy.fft version of the same algorithm (cm2cl.reference.admm with dtype=float32 and
+scipy workers = all cores), per FFT backend; and the ratio to a memory-bandwidth floor (a copy
+kernel's bytes/s on the same device times the bytes one iteration must move).
+Writes the table to docs/benchmarks.md.
+
+    python tools/bench_admm.py [--sizes 256x256x16 324x432x16] [--iters 10]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from benchlib import copy_bandwidth, markdown_table, write_section  # noqa: E402
+
+from cm2cl import fft, reference  # noqa: E402
+from cm2cl.admm import ADMMSolver  # noqa: E402
+from cm2cl.device import get_runtime  # noqa: E402
+from cm2cl.params import ADMMParams  # noqa: E402
+
+
+def bytes_per_iteration(nz, P, spec_plane, tv_iters, item=4):
+    """Traffic of one iteration's fused kernels, each FFT counted as one read and one write.
+
+    rhs 5V; FFT V+S; x-step accumulate 3S and solve 3S; IFFT S+V; w split 6V; TV: residual 6V and
+    dual step 7V per inner iteration; TV finish 8V (V: a real volume, S: a spectrum volume)."""
+    V = nz * P[0] * P[1] * item
+    S = nz * int(np.prod(spec_plane)) * 2 * item
+    return (5 + 1 + 1 + 6 + 8 + 13 * tv_iters) * V + 8 * S
+
+
+def problem(my, mx, nz, rng):
+    psf = np.zeros((nz, my, mx), np.float32)
+    for i in range(nz):  # a 3x3 array of foci whose spacing changes with depth, like the CM2 PSF
+        d = int(min(my, mx) * (0.25 + 0.01 * i))
+        for a in (-1, 0, 1):
+            for b in (-1, 0, 1):
+                psf[i, my // 2 + a * d, mx // 2 + b * d] = 1.0
+    y = rng.random((my, mx)).astype(np.float32)
+    return psf, y
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--sizes", nargs="+", default=["256x256x16", "324x432x16"])
+    ap.add_argument("--iters", type=int, default=10)
+    a = ap.parse_args(argv)
+    rt = get_runtime()
+    bw = copy_bandwidth(rt)
+    rng = np.random.default_rng(0)
+    p = ADMMParams(max_iter=a.iters, tol=0)
+    rows = []
+    for spec in a.sizes:
+        my, mx, nz = (int(v) for v in spec.split("x"))
+        psf, y = problem(my, mx, nz, rng)
+        for backend in fft.available_backends():
+            s = ADMMSolver(psf, p, backend=backend)
+            s.run(y, callback=None)  # warm-up: kernel builds, FFT plans
+            t = time.perf_counter()
+            rec = s.run(y)
+            dev = (time.perf_counter() - t) / rec.iterations
+            t = time.perf_counter()
+            ref = reference.admm(y, psf, p, padded_shape=s.P, dtype=np.float32, workers=-1)
+            npy = (time.perf_counter() - t) / ref.iterations
+            V = nz * s.P[0] * s.P[1] * 4
+            limit = 12 * V + s.model.psf_spectra.nbytes
+            floor = bytes_per_iteration(nz, s.P, s.model.spec_plane, p.tv_iters) / bw
+            rows.append([f"{my} x {mx} x {nz}", backend, f"{s.P[0]} x {s.P[1]}", f"{dev:.3f}", f"{npy:.3f}",
+                         f"{npy / dev:.2f}", f"{s.allocated_bytes / 2**20:.0f}", f"{limit / 2**20:.0f}",
+                         f"{floor * 1e3:.1f}", f"{dev / floor:.1f}"])
+            print(" | ".join(rows[-1]), flush=True)
+    head = ["sensor x planes", "FFT backend", "padded grid", "device s/iter", "numpy s/iter", "speed-up",
+            "device MiB", "limit MiB (12 V + PSF spectra)", "bandwidth floor ms", "x floor"]
+    text = (f"Device: **{rt.caps.name}** ({rt.caps.platform}), {os.cpu_count()} host cores; float32, "
+            f"tv_iters={p.tv_iters}; {a.iters} iterations after a warm-up run; copy kernel "
+            f"{bw / 1e9:.1f} GB/s; 'device MiB' counts the buffers cm2cl allocates (FFT libraries may add "
+            f"scratch). numpy = `cm2cl.reference.admm(dtype=float32, workers=-1)`. "
+            f"`python tools/bench_admm.py`\n\n" + markdown_table(head, rows))
+    print(text)
+    print("written to", write_section("ADMM iteration (tools/bench_admm.py)", text))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,59 @@
+"""Shared helpers of the benchmarks: timing, the copy-bandwidth floor, writing docs/ tables."""
+
+from __future__ import annotations
+
+import re
+import time
+from pathlib import Path
+
+import numpy as np
+
+DOCS = Path(__file__).resolve().parents[1] / "docs"
+
+
+def best_time(fn, repeat=5, warmup=1, sync=None) -> float:
+    """Best wall time of `repeat` calls (after `warmup`), synchronising with `sync()` if given."""
+    for _ in range(warmup):
+        fn()
+    if sync:
+        sync()
+    best = np.inf
+    for _ in range(repeat):
+        t = time.perf_counter()
+        fn()
+        if sync:
+            sync()
+        best = min(best, time.perf_counter() - t)
+    return best
+
+
+def copy_bandwidth(rt, nbytes=256 * 2**20) -> float:
+    """Bytes per second of a device copy kernel (read + write counted), float32."""
+    import pyopencl.array as cla
+
+    from cm2cl import kernels
+
+    n = nbytes // 4
+    a = cla.zeros(rt.queue, n, np.float32)
+    b = cla.empty(rt.queue, n, np.float32)
+    k = kernels.kernel(rt, "layout.cl", "copy_real", np.float32)
+    t = best_time(lambda: k(rt.queue, (n,), None, b.data, a.data, np.uint64(n)), repeat=5,
+                  sync=rt.queue.finish)
+    return 2 * n * 4 / t
+
+
+def markdown_table(head, rows) -> str:
+    out = ["| " + " | ".join(head) + " |", "|" + "|".join("---" for _ in head) + "|"]
+    out += ["| " + " | ".join(str(c) for c in r) + " |" for r in rows]
+    return "\n".join(out)
+
+
+def write_section(name: str, text: str, path: Path = DOCS / "benchmarks.md") -> Path:
+    """Replace (or append) the section `## name` of docs/benchmarks.md with `text`."""
+    path.parent.mkdir(exist_ok=True)
+    doc = path.read_text() if path.exists() else "# Benchmarks\n\nEvery table here is written by a script in `tools/`; re-run it to refresh.\n"
+    block = f"## {name}\n\n{text.strip()}\n"
+    pat = re.compile(rf"^## {re.escape(name)}\n.*?(?=^## |\Z)", re.S | re.M)
+    doc = pat.sub(lambda m: block + "\n", doc) if pat.search(doc) else doc.rstrip() + "\n\n" + block
+    path.write_text(doc)
+    return path
