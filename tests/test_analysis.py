@@ -1,0 +1,107 @@
+"""Figures of merit: PCC with registration, widths, SBR, MIP figures, emitter detection/matching."""
+
+import numpy as np
+import pytest
+
+from cm2cl import analysis as an
+from cm2cl.errors import InputError
+
+
+def gaussian_blob(shape, centre, sigma):
+    grids = np.meshgrid(*[np.arange(n) for n in shape], indexing="ij")
+    r2 = sum(((g - c) / s) ** 2 for g, c, s in zip(grids, centre, sigma))
+    return np.exp(-0.5 * r2)
+
+
+def test_pcc_is_eq5_and_registration_undoes_shifts():
+    rng = np.random.default_rng(0)
+    a = np.zeros((64, 80))
+    a[20:30, 10:50] = rng.random((10, 40))
+    assert an.pcc(a, a) == pytest.approx(1.0)
+    assert an.pcc(a, -a, register=False) == pytest.approx(-1.0)
+    b = an._shift_zero(a, 5, -7)
+    assert an.register_shift(a, b) == (-5, 7)
+    assert an.pcc(a, b) == pytest.approx(1.0)
+    assert an.pcc(a, b, register=False) < 0.5
+    # Eq. 5 against numpy's corrcoef
+    c = a + 0.3 * rng.random(a.shape)
+    assert an.pcc(a, c, register=False) == pytest.approx(np.corrcoef(a.ravel(), c.ravel())[0, 1])
+    # search window
+    assert an.register_shift(a, b, max_shift=3) != (-5, 7)
+
+
+def test_axial_pcc_and_width_at_level():
+    z = np.arange(-10, 11) * 10.0
+    # a spot that shifts (undone by registration) and widens (not undone) with |z|
+    stack = np.stack([gaussian_blob((48, 48), (24, 24 + 0.5 * zz / 10), (1.5 + abs(zz) / 40,) * 2) for zz in z])
+    curve = an.axial_pcc(stack, ref_index=10)
+    assert curve[10] == pytest.approx(1.0)
+    assert np.all(np.diff(curve[10:]) < 0) and np.all(np.diff(curve[:11]) > 0)
+    assert curve[-1] < 0.8
+    # triangle: known crossings
+    x = np.linspace(-5, 5, 11)
+    v = 1 - np.abs(x) / 5
+    assert an.width_at_level(x, v, 0.8) == pytest.approx(2.0)
+    with pytest.raises(InputError, match="does not fall below"):
+        an.width_at_level(x[5:], v[5:], 0.1)
+
+
+def test_fwhm_of_a_gaussian():
+    x = np.arange(101)
+    prof = 3.0 * np.exp(-0.5 * ((x - 50.3) / 6.0) ** 2) + 1.0
+    assert an.fwhm(prof, spacing=0.5, baseline="min") == pytest.approx(0.5 * 2.3548 * 6.0, rel=0.01)
+
+
+def test_local_sbr():
+    img = np.full((40, 40), 2.0)
+    mask = np.zeros_like(img, bool)
+    mask[5:10, 5:10] = True          # patch (0, 0)
+    mask[25:30, 25:30] = True        # patch (1, 1)
+    img[mask] = 6.0
+    img[20:, 20:] += 2.0             # brighter background in patch (1, 1)
+    sbr, mean = an.local_sbr(img, mask, 20)
+    assert sbr[0, 0] == pytest.approx(3.0)
+    assert sbr[1, 1] == pytest.approx(2.0)
+    assert np.isnan(sbr[0, 1])
+    assert mean == pytest.approx(2.5)
+    m = an.signal_mask(img - 2.0, 0.5)
+    assert m[7, 7] and not m[0, 0]
+
+
+def test_find_and_match_emitters_subvoxel():
+    rng = np.random.default_rng(3)
+    shape = (9, 64, 64)
+    true = np.array([[2.3, 10.4, 12.7], [6.6, 40.2, 50.5], [4.0, 30.8, 20.1]])
+    vol = sum(gaussian_blob(shape, c, (0.8, 1.2, 1.2)) for c in true)
+    vol += 0.01 * rng.random(shape)
+    det = an.find_emitters(vol, threshold=0.3, voxel_size_um=(100.0, 5.0, 5.0))
+    assert len(det["amplitude"]) == 3
+    res = an.match_emitters(det["position_um"], true * np.array([100.0, 5.0, 5.0]), 20.0, 150.0)
+    assert res["n_matched"] == 3 and res["recall"] == 1.0 and res["precision"] == 1.0
+    assert res["lateral_rms_um"] < 1.0        # 0.2 voxel
+    assert res["axial_rms_um"] < 15.0         # 0.15 plane
+    # a far-away detection does not match
+    res2 = an.match_emitters(np.array([[0.0, 1000.0, 1000.0]]), true, 20.0, 150.0)
+    assert res2["n_matched"] == 0 and res2["recall"] == 0.0
+    # depths_um map the axial index
+    det2 = an.find_emitters(vol, threshold=0.3, depths_um=np.linspace(-400, 400, 9))
+    assert np.sort(det2["position_um"][:, 0])[0] == pytest.approx(-400 + 2.3 * 100, abs=15)
+
+
+def test_mip_png(tmp_path):
+    vol = np.zeros((5, 30, 40))
+    vol[1, 10, 10] = 1.0
+    vol[4, 20, 30] = 0.5
+    p = an.mip_png(vol, tmp_path / "mip.png", voxel_size_um=(100, 5, 5), depths_um=[-200, -100, 0, 100, 200],
+                   title="test")
+    data = p.read_bytes()
+    assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 1000
+
+
+def test_bad_inputs():
+    with pytest.raises(InputError, match="shapes differ"):
+        an.pcc(np.zeros((3, 3)), np.zeros((3, 4)))
+    with pytest.raises(InputError, match="constant"):
+        an.pcc(np.ones((3, 3)), np.ones((3, 3)), register=False)
+    with pytest.raises(InputError, match="mask shape"):
+        an.local_sbr(np.ones((4, 4)), np.ones((3, 3), bool), 2)
