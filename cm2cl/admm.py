@@ -83,6 +83,8 @@ class ADMMSolver:
             ("splits.cl", "update_w"), ("splits.cl", "update_v"), ("tv.cl", "tv_residual"),
             ("tv.cl", "tv_dual_step"), ("tv.cl", "tv_finish"), ("reduce.cl", "reduce_partials")]}
         self.groups = int(min(512, max(8, 8 * rt.caps.compute_units)))
+        # reductions walk contiguous chunks on CPUs, a grid stride elsewhere (coalescing)
+        self.chunked = np.int32(rt.caps.kind == "CPU")
         self.local = {n: kernels.work_group_size(rt, self.k[n])
                       for n in ("update_w", "update_v", "tv_finish", "reduce_partials")}
 
@@ -120,9 +122,13 @@ class ADMMSolver:
     def _ew(self, name, n, *args):
         self.k[name](self.rt.queue, (int(n),), None, *args)
 
+    def _grid(self, name, planes, *args):
+        """Launch over a (nx, ny, planes) range: coordinates without divisions."""
+        self.k[name](self.rt.queue, (self.P[1], self.P[0], int(planes)), None, *args)
+
     def _red(self, name, *args):
         L = self.local[name]
-        self.k[name](self.rt.queue, (self.groups * L,), (L,), *args)
+        self.k[name](self.rt.queue, (self.groups * L,), (L,), *args, self.chunked)
 
     def _loc(self, name):
         import pyopencl as cl
@@ -202,7 +208,7 @@ class ADMMSolver:
                     for j, (z0, z1) in enumerate(bounds):
                         hp, hn = j > 0, j + 1 < nslab
                         prev = pz_.slabs[j - 1] if hp else pz_.slabs[j]
-                        self._ew("tv_residual", self.g.slabs[j].size, self.g.slabs[j].data,
+                        self._grid("tv_residual", z1 - z0, self.g.slabs[j].data,
                                  px_.slabs[j].data, py_.slabs[j].data, pz_.slabs[j].data, prev.data,
                                  I(hp), I(prev.shape[0]), I(hn), self.x.slabs[j].data,
                                  self.eta.slabs[j].data, R(1.0 / mu_u), R(1.0 / tau), aw,
@@ -210,7 +216,7 @@ class ADMMSolver:
                     for j, (z0, z1) in enumerate(bounds):
                         hn = j + 1 < nslab
                         gn = self.g.slabs[j + 1] if hn else self.g.slabs[j]
-                        self._ew("tv_dual_step", self.g.slabs[j].size, px_.slabs[j].data,
+                        self._grid("tv_dual_step", z1 - z0, px_.slabs[j].data,
                                  py_.slabs[j].data, pz_.slabs[j].data, self.g.slabs[j].data, gn.data,
                                  I(hn), step, aw, iso, I(z1 - z0), I(ny), I(nx))
             for j, (z0, z1) in enumerate(bounds):

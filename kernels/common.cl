@@ -62,8 +62,39 @@ inline void reduce_to(__global real_t *partials, __local real_t *scratch, real_t
     }
 }
 
-/* Index helpers for a slab of `planes` planes of ny x nx reals, element i = (z*ny + y)*nx + x. */
-#define SLAB_COORDS(i, ny, nx, z, y, x) \
-    const int x = (int)((i) % (size_t)(nx)); \
-    const int y = (int)(((i) / (size_t)(nx)) % (size_t)(ny)); \
-    const int z = (int)((i) / ((size_t)(nx) * (size_t)(ny)));
+/* Coordinates (x, y, z) of element i = (z*ny + y)*nx + x of a slab of ny x nx planes, and their
+ * advance by a fixed stride: grid-stride loops then need no integer division per element. */
+typedef struct { int x, y, z; } coord_t;
+
+inline coord_t coords_of(const size_t i, const int ny, const int nx) {
+    coord_t c;
+    c.x = (int)(i % (size_t)nx);
+    c.y = (int)((i / (size_t)nx) % (size_t)ny);
+    c.z = (int)(i / ((size_t)nx * (size_t)ny));
+    return c;
+}
+
+inline void coords_advance(coord_t *c, const coord_t s, const int ny, const int nx) {
+    c->x += s.x;
+    if (c->x >= nx) { c->x -= nx; c->y += 1; }
+    c->y += s.y;
+    if (c->y >= ny) { c->y -= ny; c->z += 1; }
+    c->z += s.z;
+}
+
+/* The elements [*first, *end) with stride *step that work-item get_global_id(0) reduces over n:
+ * contiguous chunks on CPUs (chunked != 0: cache lines used whole), a grid stride on GPUs
+ * (coalesced accesses across neighbouring work-items). */
+inline void reduction_range(const size_t n, const int chunked, size_t *first, size_t *end, size_t *step) {
+    const size_t gid = get_global_id(0), gs = get_global_size(0);
+    if (chunked) {
+        const size_t chunk = (n + gs - 1) / gs;
+        *first = min(n, gid * chunk);
+        *end = min(n, *first + chunk);
+        *step = 1;
+    } else {
+        *first = gid;
+        *end = n;
+        *step = gs;
+    }
+}

@@ -25,13 +25,17 @@ __kernel void update_w(__global const real_t *x, __global const real_t *x_next, 
                        const real_t l1, const real_t mu_w, const real_t aw, const int iso,
                        const int planes, const int ny, const int nx,
                        __global real_t *partials, __local real_t *scratch,
-                       const int slot0, const int first) {
+                       const int slot0, const int first, const int chunked) {
     const size_t n = (size_t)planes * ny * nx;
     real_t a0 = 0, a1 = 0, a2 = 0, a3 = 0, a4 = 0, a5 = 0;
     real_t c0 = 0, c1 = 0, c2 = 0, c3 = 0, c4 = 0, c5 = 0;
     const real_t inv_mu = (real_t)1 / mu_w;
-    for (size_t i = get_global_id(0); i < n; i += get_global_size(0)) {
-        SLAB_COORDS(i, ny, nx, z, y, xx)
+    size_t i0, i1, di;
+    reduction_range(n, chunked, &i0, &i1, &di);
+    coord_t cc = coords_of(i0, ny, nx);
+    const coord_t st = coords_of(di, ny, nx);
+    for (size_t i = i0; i < i1; i += di, coords_advance(&cc, st, ny, nx)) {
+        const int xx = cc.x, y = cc.y, z = cc.z;
         const real_t xi = x[i];
         const real_t r = rho[i];
         const real_t wn = fmax(xi + (r - l1) * inv_mu, (real_t)0);
@@ -61,10 +65,13 @@ __kernel void update_v(__global real_t *v, __global real_t *xi, __global const r
                        __global const real_t *cty, const real_t mu_v,
                        const int py, const int px, const int my, const int mx,
                        const int oy, const int ox,
-                       __global real_t *partials, __local real_t *scratch, const int slot0) {
+                       __global real_t *partials, __local real_t *scratch, const int slot0,
+                       const int chunked) {
     const size_t n = (size_t)py * px;
     real_t a0 = 0, a1 = 0, a2 = 0, c0 = 0, c1 = 0, c2 = 0;
-    for (size_t i = get_global_id(0); i < n; i += get_global_size(0)) {
+    size_t i0, i1, di;
+    reduction_range(n, chunked, &i0, &i1, &di);
+    for (size_t i = i0; i < i1; i += di) {
         const int r = (int)(i / (size_t)px), c = (int)(i % (size_t)px);
         const int inside = (r >= oy && r < oy + my && c >= ox && c < ox + mx);
         const real_t h = hx[i];

@@ -29,9 +29,9 @@ __kernel void tv_residual(__global real_t *g,
                           const int has_next, __global const real_t *x, __global const real_t *eta,
                           const real_t inv_mu_u, const real_t inv_tau, const real_t aw,
                           const int planes, const int ny, const int nx) {
-    const size_t i = get_global_id(0);
-    if (i >= (size_t)planes * ny * nx) return;
-    SLAB_COORDS(i, ny, nx, z, y, xx)
+    const int xx = get_global_id(0), y = get_global_id(1), z = get_global_id(2);
+    if (xx >= nx || y >= ny || z >= planes) return;
+    const size_t i = ((size_t)z * ny + y) * nx + xx;
     const real_t d = div_at(px, py, pz, pz_prev, has_prev, has_next, i, z, y, xx,
                             planes, prev_planes, ny, nx, aw);
     g[i] = d - (x[i] + eta[i] * inv_mu_u) * inv_tau;
@@ -42,9 +42,9 @@ __kernel void tv_dual_step(__global real_t *px, __global real_t *py, __global re
                            __global const real_t *g, __global const real_t *g_next, const int has_next,
                            const real_t step, const real_t aw, const int iso,
                            const int planes, const int ny, const int nx) {
-    const size_t i = get_global_id(0);
-    if (i >= (size_t)planes * ny * nx) return;
-    SLAB_COORDS(i, ny, nx, z, y, xx)
+    const int xx = get_global_id(0), y = get_global_id(1), z = get_global_id(2);
+    if (xx >= nx || y >= ny || z >= planes) return;
+    const size_t i = ((size_t)z * ny + y) * nx + xx;
     const size_t plane = (size_t)ny * nx;
     const real_t c = g[i];
     const real_t gx = (xx < nx - 1) ? g[i + 1] - c : (real_t)0;
@@ -72,12 +72,16 @@ __kernel void tv_finish(__global real_t *u, __global real_t *eta, __global const
                         const int has_next, const real_t mu_u, const real_t tau, const real_t aw,
                         const int planes, const int ny, const int nx,
                         __global real_t *partials, __local real_t *scratch,
-                        const int slot0, const int first) {
+                        const int slot0, const int first, const int chunked) {
     const size_t n = (size_t)planes * ny * nx;
     real_t a0 = 0, a1 = 0, c0 = 0, c1 = 0;
     const real_t inv_mu = (real_t)1 / mu_u;
-    for (size_t i = get_global_id(0); i < n; i += get_global_size(0)) {
-        SLAB_COORDS(i, ny, nx, z, y, xx)
+    size_t i0, i1, di;
+    reduction_range(n, chunked, &i0, &i1, &di);
+    coord_t cc = coords_of(i0, ny, nx);
+    const coord_t st = coords_of(di, ny, nx);
+    for (size_t i = i0; i < i1; i += di, coords_advance(&cc, st, ny, nx)) {
+        const int xx = cc.x, y = cc.y, z = cc.z;
         const real_t xv = x[i], e = eta[i];
         real_t un = xv + e * inv_mu;
         if (tau > 0)
