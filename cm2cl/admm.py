@@ -27,6 +27,8 @@ from .volume import Volume
 # Slots of the per-iteration reduction buffer.
 DX2, X2, L1, TV, RW2, SW2, RV2, SV2, DATA2, RU2, SU2 = range(11)
 NSLOTS = 11
+#: elements each work-item of a reduction handles
+PER_ITEM = 16
 
 #: real volumes on the padded grid the solver keeps (x, x_old/scratch, u, w, eta, rho, px, py, pz)
 REAL_VOLUMES = 9
@@ -82,11 +84,13 @@ class ADMMSolver:
             ("xstep.cl", "xstep_accumulate"), ("xstep.cl", "xstep_hx"), ("xstep.cl", "xstep_solve"),
             ("splits.cl", "update_w"), ("splits.cl", "update_v"), ("tv.cl", "tv_residual"),
             ("tv.cl", "tv_dual_step"), ("tv.cl", "tv_finish"), ("reduce.cl", "reduce_partials")]}
-        self.groups = int(min(512, max(8, 8 * rt.caps.compute_units)))
-        # reductions walk contiguous chunks on CPUs, a grid stride elsewhere (coalescing)
-        self.chunked = np.int32(rt.caps.kind == "CPU")
+        # reductions: each work-item walks contiguous elements on CPUs, interleaved on GPUs
+        self.contiguous = np.int32(rt.caps.kind == "CPU")
         self.local = {n: kernels.work_group_size(rt, self.k[n])
                       for n in ("update_w", "update_v", "tv_finish", "reduce_partials")}
+        # one partial sum per work-group of the largest launch, per slot
+        biggest = max([(z1 - z0) for z0, z1 in m.bounds] + [1]) * int(np.prod(m.padded_shape))
+        self.pstride = -(-biggest // (min(self.local.values()) * PER_ITEM))
 
         # ||H|| = 1 normalisation from the spectral power, computed on the device once.
         self.hn2 = Volume(rt, [(0, 1)], m.spec_plane, self.dtype)
@@ -110,7 +114,7 @@ class ADMMSolver:
         splane = lambda: Volume(rt, [(0, 1)], m.spec_plane, m.cdtype)  # noqa: E731
         self.R, self.S, self.comp = (splane() for _ in range(3))
         import pyopencl.array as cla
-        self.partials = cla.zeros(rt.queue, NSLOTS * self.groups, self.dtype)
+        self.partials = cla.zeros(rt.queue, NSLOTS * self.pstride, self.dtype)
         self.out = cla.zeros(rt.queue, NSLOTS, self.dtype)
         self.allocated_bytes = sum(a.nbytes for a in (
             [m.psf_spectra, self.hn2, self.x, self.g, self.u, self.w, self.eta, self.rho, self.spec,
@@ -126,13 +130,15 @@ class ADMMSolver:
         """Launch over a (nx, ny, planes) range: coordinates without divisions."""
         self.k[name](self.rt.queue, (self.P[1], self.P[0], int(planes)), None, *args)
 
-    def _red(self, name, *args):
-        L = self.local[name]
-        self.k[name](self.rt.queue, (self.groups * L,), (L,), *args, self.chunked)
-
-    def _loc(self, name):
+    def _red(self, name, n, slot, *args):
+        """Launch a fused update + reduction over n elements; its sums go to partials[slot...]."""
         import pyopencl as cl
-        return cl.LocalMemory(self.local[name] * self.dtype.itemsize)
+
+        L = self.local[name]
+        groups = -(-int(n) // (L * PER_ITEM))
+        self.k[name](self.rt.queue, (groups * L,), (L,), *args, self.partials.data, np.int32(self.pstride),
+                     cl.LocalMemory(L * self.dtype.itemsize), np.int32(slot), np.int32(PER_ITEM),
+                     self.contiguous)
 
     def x_step(self, mu_v, mu_u, mu_w):
         """Solve (mu_v H^T H + (mu_u + mu_w) I) x = H^T (mu_v v - xi) + (mu_u u - eta) + (mu_w w - rho)
@@ -169,6 +175,8 @@ class ADMMSolver:
         if self.p.normalize and not ymax > 0:
             raise InputError("measurement: has no positive value (check the offset subtraction)")
         y_scale = 1.0 / ymax if self.p.normalize else 1.0
+        import pyopencl as cl
+
         p, m, rt, q, R = self.p, self.model, self.rt, self.rt.queue, self.dtype.type
         I = np.int32  # noqa: E741
         ny, nx = self.P
@@ -188,18 +196,18 @@ class ADMMSolver:
         for it in range(1, p.max_iter + 1):
             self.x_step(mu_v, mu_u, mu_w)
             self.x, self.g = self.g, self.x  # x: new iterate, g: previous one (then scratch)
+            self.partials.fill(0)
             # ---- w split (+ objective terms of x)
             for j, ((z0, z1), xs, gs, ws, rs) in enumerate(zip(bounds, self.x.slabs, self.g.slabs,
                                                               self.w.slabs, self.rho.slabs)):
                 has_next = j + 1 < nslab
                 xn = self.x.slabs[j + 1] if has_next else xs
-                self._red("update_w", xs.data, xn.data, I(has_next), gs.data, ws.data, rs.data,
-                          R(p.l1), R(mu_w), aw, iso, I(z1 - z0), I(ny), I(nx),
-                          self.partials.data, self._loc("update_w"), I(DX2), I(j == 0))
+                self._red("update_w", xs.size, DX2, xs.data, xn.data, I(has_next), gs.data, ws.data,
+                          rs.data, R(p.l1), R(mu_w), aw, iso, I(z1 - z0), I(ny), I(nx))
             # ---- v split
-            self._red("update_v", self.v.slabs[0].data, self.xi.slabs[0].data, self.hx.slabs[0].data,
-                      self.cty.slabs[0].data, R(mu_v), I(ny), I(nx), I(my), I(mx), I(oy), I(ox),
-                      self.partials.data, self._loc("update_v"), I(RV2))
+            self._red("update_v", ny * nx, RV2, self.v.slabs[0].data, self.xi.slabs[0].data,
+                      self.hx.slabs[0].data, self.cty.slabs[0].data, R(mu_v), I(ny), I(nx), I(my), I(mx),
+                      I(oy), I(ox))
             # ---- u split (TV)
             tau = p.tv / mu_u
             px_, py_, pz_ = self.pd
@@ -222,14 +230,14 @@ class ADMMSolver:
             for j, (z0, z1) in enumerate(bounds):
                 hp, hn = j > 0, j + 1 < nslab
                 prev = pz_.slabs[j - 1] if hp else pz_.slabs[j]
-                self._red("tv_finish", self.u.slabs[j].data, self.eta.slabs[j].data, self.x.slabs[j].data,
-                          px_.slabs[j].data, py_.slabs[j].data, pz_.slabs[j].data, prev.data, I(hp),
-                          I(prev.shape[0]), I(hn), R(mu_u), R(tau), aw, I(z1 - z0), I(ny), I(nx),
-                          self.partials.data, self._loc("tv_finish"), I(RU2), I(j == 0))
+                self._red("tv_finish", self.u.slabs[j].size, RU2, self.u.slabs[j].data,
+                          self.eta.slabs[j].data, self.x.slabs[j].data, px_.slabs[j].data, py_.slabs[j].data,
+                          pz_.slabs[j].data, prev.data, I(hp), I(prev.shape[0]), I(hn), R(mu_u), R(tau), aw,
+                          I(z1 - z0), I(ny), I(nx))
             # ---- the scalars of this iteration: one small read
             L = self.local["reduce_partials"]
             self.k["reduce_partials"](q, (NSLOTS * L,), (L,), self.partials.data, self.out.data,
-                                      I(self.groups), self._loc("reduce_partials"))
+                                      I(self.pstride), cl.LocalMemory(L * self.dtype.itemsize))
             s = self.out.get().astype(np.float64)
             r_v, s_v = np.sqrt(s[RV2]), mu_v * np.sqrt(s[SV2])
             r_u, s_u = np.sqrt(s[RU2]), mu_u * np.sqrt(s[SU2])

@@ -51,15 +51,12 @@ inline real_t group_sum(real_t v, __local real_t *scratch) {
     return r;
 }
 
-/* Write the work-group sum of `v` to partials[slot * groups + group_id]; `first` != 0 overwrites,
- * else adds (to accumulate over the slabs of a volume).  All work-items must call it. */
-inline void reduce_to(__global real_t *partials, __local real_t *scratch, real_t v,
-                      const int slot, const int first) {
+/* Add the work-group sum of `v` to partials[slot * stride + group_id] (the buffer is
+ * zeroed once per iteration; slabs of a volume accumulate).  All work-items must call it. */
+inline void reduce_to(__global real_t *partials, const int stride, __local real_t *scratch,
+                      const real_t v, const int slot) {
     const real_t t = group_sum(v, scratch);
-    if (get_local_id(0) == 0) {
-        const size_t j = (size_t)slot * get_num_groups(0) + get_group_id(0);
-        partials[j] = first ? t : partials[j] + t;
-    }
+    if (get_local_id(0) == 0) partials[(size_t)slot * stride + get_group_id(0)] += t;
 }
 
 /* Coordinates (x, y, z) of element i = (z*ny + y)*nx + x of a slab of ny x nx planes, and their
@@ -82,19 +79,22 @@ inline void coords_advance(coord_t *c, const coord_t s, const int ny, const int 
     c->z += s.z;
 }
 
-/* The elements [*first, *end) with stride *step that work-item get_global_id(0) reduces over n:
- * contiguous chunks on CPUs (chunked != 0: cache lines used whole), a grid stride on GPUs
- * (coalesced accesses across neighbouring work-items). */
-inline void reduction_range(const size_t n, const int chunked, size_t *first, size_t *end, size_t *step) {
-    const size_t gid = get_global_id(0), gs = get_global_size(0);
-    if (chunked) {
-        const size_t chunk = (n + gs - 1) / gs;
-        *first = min(n, gid * chunk);
-        *end = min(n, *first + chunk);
+/* The elements [*first, *end) with stride *step that a work-item reduces.  Work-group g covers
+ * the contiguous block [g*L*K, (g+1)*L*K) of the n elements (L = local size, K = elements per
+ * work-item).  Inside the block, `contiguous` != 0 gives each work-item K neighbouring elements
+ * (CPUs: work-items run one after the other, so the block is walked in order), else the work-items
+ * interleave with stride L (GPUs: neighbouring work-items read neighbouring elements, coalesced). */
+inline void reduction_range(const size_t n, const int K, const int contiguous,
+                            size_t *first, size_t *end, size_t *step) {
+    const size_t L = get_local_size(0), lid = get_local_id(0);
+    const size_t block = (size_t)get_group_id(0) * L * (size_t)K;
+    if (contiguous) {
+        *first = block + lid * (size_t)K;
+        *end = min(n, *first + (size_t)K);
         *step = 1;
     } else {
-        *first = gid;
-        *end = n;
-        *step = gs;
+        *first = block + lid;
+        *end = min(n, block + L * (size_t)K);
+        *step = L;
     }
 }

@@ -1,4 +1,5 @@
-/* Final stage of the reductions: out[slot] = sum_g partials[slot * groups + g].
+/* Final stage of the reductions: out[slot] = sum_g partials[slot * groups + g] (groups = the
+ * stride of the partials buffer).
  * One work-group per slot; global size = slots * local size.  Kahan per work-item, then a tree. */
 __kernel void reduce_partials(__global const real_t *partials, __global real_t *out,
                               const int groups, __local real_t *scratch) {

@@ -8,8 +8,9 @@ inline real_t tv_at(__global const real_t *x, __global const real_t *x_next, con
                     const int planes, const int ny, const int nx, const real_t aw, const int iso) {
     const size_t plane = (size_t)ny * nx;
     const real_t c = x[i];
-    const real_t gx = (xx < nx - 1) ? x[i + 1] - c : (real_t)0;
-    const real_t gy = (y < ny - 1) ? x[i + nx] - c : (real_t)0;
+    const real_t xr = x[i + (size_t)(xx < nx - 1)], xd = x[i + (size_t)(y < ny - 1) * nx];
+    const real_t gx = (xx < nx - 1) ? xr - c : (real_t)0;
+    const real_t gy = (y < ny - 1) ? xd - c : (real_t)0;
     real_t gz = 0;
     if (z < planes - 1) gz = aw * (x[i + plane] - c);
     else if (has_next) gz = aw * (x_next[i - (size_t)z * plane] - c);
@@ -24,14 +25,14 @@ __kernel void update_w(__global const real_t *x, __global const real_t *x_next, 
                        __global const real_t *x_old, __global real_t *w, __global real_t *rho,
                        const real_t l1, const real_t mu_w, const real_t aw, const int iso,
                        const int planes, const int ny, const int nx,
-                       __global real_t *partials, __local real_t *scratch,
-                       const int slot0, const int first, const int chunked) {
+                       __global real_t *partials, const int pstride, __local real_t *scratch,
+                       const int slot0, const int per_item, const int contiguous) {
     const size_t n = (size_t)planes * ny * nx;
     real_t a0 = 0, a1 = 0, a2 = 0, a3 = 0, a4 = 0, a5 = 0;
     real_t c0 = 0, c1 = 0, c2 = 0, c3 = 0, c4 = 0, c5 = 0;
     const real_t inv_mu = (real_t)1 / mu_w;
     size_t i0, i1, di;
-    reduction_range(n, chunked, &i0, &i1, &di);
+    reduction_range(n, per_item, contiguous, &i0, &i1, &di);
     coord_t cc = coords_of(i0, ny, nx);
     const coord_t st = coords_of(di, ny, nx);
     for (size_t i = i0; i < i1; i += di, coords_advance(&cc, st, ny, nx)) {
@@ -49,12 +50,12 @@ __kernel void update_w(__global const real_t *x, __global const real_t *x_next, 
         kahan_add(&a4, &c4, pw * pw);
         kahan_add(&a5, &c5, dw * dw);
     }
-    reduce_to(partials, scratch, a0, slot0 + 0, first);
-    reduce_to(partials, scratch, a1, slot0 + 1, first);
-    reduce_to(partials, scratch, a2, slot0 + 2, first);
-    reduce_to(partials, scratch, a3, slot0 + 3, first);
-    reduce_to(partials, scratch, a4, slot0 + 4, first);
-    reduce_to(partials, scratch, a5, slot0 + 5, first);
+    reduce_to(partials, pstride, scratch, a0, slot0 + 0);
+    reduce_to(partials, pstride, scratch, a1, slot0 + 1);
+    reduce_to(partials, pstride, scratch, a2, slot0 + 2);
+    reduce_to(partials, pstride, scratch, a3, slot0 + 3);
+    reduce_to(partials, pstride, scratch, a4, slot0 + 4);
+    reduce_to(partials, pstride, scratch, a5, slot0 + 5);
 }
 
 /* The v split on the padded plane (py, px), sensor window (my, mx) at (oy, ox):
@@ -65,12 +66,12 @@ __kernel void update_v(__global real_t *v, __global real_t *xi, __global const r
                        __global const real_t *cty, const real_t mu_v,
                        const int py, const int px, const int my, const int mx,
                        const int oy, const int ox,
-                       __global real_t *partials, __local real_t *scratch, const int slot0,
-                       const int chunked) {
+                       __global real_t *partials, const int pstride, __local real_t *scratch, const int slot0,
+                       const int per_item, const int contiguous) {
     const size_t n = (size_t)py * px;
     real_t a0 = 0, a1 = 0, a2 = 0, c0 = 0, c1 = 0, c2 = 0;
     size_t i0, i1, di;
-    reduction_range(n, chunked, &i0, &i1, &di);
+    reduction_range(n, per_item, contiguous, &i0, &i1, &di);
     for (size_t i = i0; i < i1; i += di) {
         const int r = (int)(i / (size_t)px), c = (int)(i % (size_t)px);
         const int inside = (r >= oy && r < oy + my && c >= ox && c < ox + mx);
@@ -83,7 +84,7 @@ __kernel void update_v(__global real_t *v, __global real_t *xi, __global const r
         kahan_add(&a1, &c1, dv * dv);
         if (inside) { const real_t d = h - cty[i]; kahan_add(&a2, &c2, d * d); }
     }
-    reduce_to(partials, scratch, a0, slot0 + 0, 1);
-    reduce_to(partials, scratch, a1, slot0 + 1, 1);
-    reduce_to(partials, scratch, a2, slot0 + 2, 1);
+    reduce_to(partials, pstride, scratch, a0, slot0 + 0);
+    reduce_to(partials, pstride, scratch, a1, slot0 + 1);
+    reduce_to(partials, pstride, scratch, a2, slot0 + 2);
 }

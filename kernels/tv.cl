@@ -13,8 +13,10 @@ inline real_t div_at(__global const real_t *px, __global const real_t *py, __glo
                      const int planes, const int prev_planes, const int ny, const int nx,
                      const real_t aw) {
     const size_t plane = (size_t)ny * nx;
-    real_t d = (x < nx - 1 ? px[i] : (real_t)0) - (x > 0 ? px[i - 1] : (real_t)0);
-    d += (y < ny - 1 ? py[i] : (real_t)0) - (y > 0 ? py[i - nx] : (real_t)0);
+    /* unconditional loads at clamped indices, then selects: keeps the x direction vectorisable */
+    const real_t pxl = px[i - (size_t)(x > 0)], pyl = py[i - (size_t)(y > 0) * nx];
+    real_t d = (x < nx - 1 ? px[i] : (real_t)0) - (x > 0 ? pxl : (real_t)0);
+    d += (y < ny - 1 ? py[i] : (real_t)0) - (y > 0 ? pyl : (real_t)0);
     const int last = (z == planes - 1) && !has_next;
     real_t dz = last ? (real_t)0 : pz[i];
     if (z > 0) dz -= pz[i - plane];
@@ -47,8 +49,9 @@ __kernel void tv_dual_step(__global real_t *px, __global real_t *py, __global re
     const size_t i = ((size_t)z * ny + y) * nx + xx;
     const size_t plane = (size_t)ny * nx;
     const real_t c = g[i];
-    const real_t gx = (xx < nx - 1) ? g[i + 1] - c : (real_t)0;
-    const real_t gy = (y < ny - 1) ? g[i + nx] - c : (real_t)0;
+    const real_t gr = g[i + (size_t)(xx < nx - 1)], gd = g[i + (size_t)(y < ny - 1) * nx];
+    const real_t gx = (xx < nx - 1) ? gr - c : (real_t)0;
+    const real_t gy = (y < ny - 1) ? gd - c : (real_t)0;
     real_t gz = 0;
     if (z < planes - 1) gz = aw * (g[i + plane] - c);
     else if (has_next) gz = aw * (g_next[i - (size_t)z * plane] - c);
@@ -71,13 +74,13 @@ __kernel void tv_finish(__global real_t *u, __global real_t *eta, __global const
                         __global const real_t *pz_prev, const int has_prev, const int prev_planes,
                         const int has_next, const real_t mu_u, const real_t tau, const real_t aw,
                         const int planes, const int ny, const int nx,
-                        __global real_t *partials, __local real_t *scratch,
-                        const int slot0, const int first, const int chunked) {
+                        __global real_t *partials, const int pstride, __local real_t *scratch,
+                        const int slot0, const int per_item, const int contiguous) {
     const size_t n = (size_t)planes * ny * nx;
     real_t a0 = 0, a1 = 0, c0 = 0, c1 = 0;
     const real_t inv_mu = (real_t)1 / mu_u;
     size_t i0, i1, di;
-    reduction_range(n, chunked, &i0, &i1, &di);
+    reduction_range(n, per_item, contiguous, &i0, &i1, &di);
     coord_t cc = coords_of(i0, ny, nx);
     const coord_t st = coords_of(di, ny, nx);
     for (size_t i = i0; i < i1; i += di, coords_advance(&cc, st, ny, nx)) {
@@ -93,6 +96,6 @@ __kernel void tv_finish(__global real_t *u, __global real_t *eta, __global const
         kahan_add(&a0, &c0, pu * pu);
         kahan_add(&a1, &c1, du * du);
     }
-    reduce_to(partials, scratch, a0, slot0 + 0, first);
-    reduce_to(partials, scratch, a1, slot0 + 1, first);
+    reduce_to(partials, pstride, scratch, a0, slot0 + 0);
+    reduce_to(partials, pstride, scratch, a1, slot0 + 1);
 }
