@@ -79,7 +79,9 @@ inline void coords_advance(coord_t *c, const coord_t s, const int ny, const int 
     c->z += s.z;
 }
 
-/* The elements [*first, *end) with stride *step that a work-item reduces.  Work-group g covers
+/* The elements [*first, *end) with stride *step that a work-item reduces (it sums K values; the
+ * sums are then combined by a tree in the work-group and by reduce_partials: pairwise-like
+ * summation, error O(log n) roundings rather than O(n)).  Work-group g covers
  * the contiguous block [g*L*K, (g+1)*L*K) of the n elements (L = local size, K = elements per
  * work-item).  Inside the block, `contiguous` != 0 gives each work-item K neighbouring elements
  * (CPUs: work-items run one after the other, so the block is walked in order), else the work-items

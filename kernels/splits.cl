@@ -29,7 +29,6 @@ __kernel void update_w(__global const real_t *x, __global const real_t *x_next, 
                        const int slot0, const int per_item, const int contiguous) {
     const size_t n = (size_t)planes * ny * nx;
     real_t a0 = 0, a1 = 0, a2 = 0, a3 = 0, a4 = 0, a5 = 0;
-    real_t c0 = 0, c1 = 0, c2 = 0, c3 = 0, c4 = 0, c5 = 0;
     const real_t inv_mu = (real_t)1 / mu_w;
     size_t i0, i1, di;
     reduction_range(n, per_item, contiguous, &i0, &i1, &di);
@@ -43,12 +42,12 @@ __kernel void update_w(__global const real_t *x, __global const real_t *x_next, 
         const real_t dx = xi - x_old[i], pw = xi - wn, dw = wn - w[i];
         rho[i] = r + mu_w * pw;
         w[i] = wn;
-        kahan_add(&a0, &c0, dx * dx);
-        kahan_add(&a1, &c1, xi * xi);
-        kahan_add(&a2, &c2, fabs(xi));
-        kahan_add(&a3, &c3, tv_at(x, x_next, has_next, i, z, y, xx, planes, ny, nx, aw, iso));
-        kahan_add(&a4, &c4, pw * pw);
-        kahan_add(&a5, &c5, dw * dw);
+        a0 += dx * dx;
+        a1 += xi * xi;
+        a2 += fabs(xi);
+        a3 += tv_at(x, x_next, has_next, i, z, y, xx, planes, ny, nx, aw, iso);
+        a4 += pw * pw;
+        a5 += dw * dw;
     }
     reduce_to(partials, pstride, scratch, a0, slot0 + 0);
     reduce_to(partials, pstride, scratch, a1, slot0 + 1);
@@ -69,7 +68,7 @@ __kernel void update_v(__global real_t *v, __global real_t *xi, __global const r
                        __global real_t *partials, const int pstride, __local real_t *scratch, const int slot0,
                        const int per_item, const int contiguous) {
     const size_t n = (size_t)py * px;
-    real_t a0 = 0, a1 = 0, a2 = 0, c0 = 0, c1 = 0, c2 = 0;
+    real_t a0 = 0, a1 = 0, a2 = 0;
     size_t i0, i1, di;
     reduction_range(n, per_item, contiguous, &i0, &i1, &di);
     for (size_t i = i0; i < i1; i += di) {
@@ -80,9 +79,9 @@ __kernel void update_v(__global real_t *v, __global real_t *xi, __global const r
         const real_t pv = h - vn, dv = vn - v[i];
         xi[i] += mu_v * pv;
         v[i] = vn;
-        kahan_add(&a0, &c0, pv * pv);
-        kahan_add(&a1, &c1, dv * dv);
-        if (inside) { const real_t d = h - cty[i]; kahan_add(&a2, &c2, d * d); }
+        a0 += pv * pv;
+        a1 += dv * dv;
+        if (inside) { const real_t d = h - cty[i]; a2 += d * d; }
     }
     reduce_to(partials, pstride, scratch, a0, slot0 + 0);
     reduce_to(partials, pstride, scratch, a1, slot0 + 1);

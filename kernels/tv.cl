@@ -77,7 +77,7 @@ __kernel void tv_finish(__global real_t *u, __global real_t *eta, __global const
                         __global real_t *partials, const int pstride, __local real_t *scratch,
                         const int slot0, const int per_item, const int contiguous) {
     const size_t n = (size_t)planes * ny * nx;
-    real_t a0 = 0, a1 = 0, c0 = 0, c1 = 0;
+    real_t a0 = 0, a1 = 0;
     const real_t inv_mu = (real_t)1 / mu_u;
     size_t i0, i1, di;
     reduction_range(n, per_item, contiguous, &i0, &i1, &di);
@@ -93,8 +93,8 @@ __kernel void tv_finish(__global real_t *u, __global real_t *eta, __global const
         const real_t pu = xv - un, du = un - u[i];
         eta[i] = e + mu_u * pu;
         u[i] = un;
-        kahan_add(&a0, &c0, pu * pu);
-        kahan_add(&a1, &c1, du * du);
+        a0 += pu * pu;
+        a1 += du * du;
     }
     reduce_to(partials, pstride, scratch, a0, slot0 + 0);
     reduce_to(partials, pstride, scratch, a1, slot0 + 1);
