@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from benchlib import copy_bandwidth, markdown_table, write_section  # noqa: E402
+from benchlib import best_time, copy_bandwidth, markdown_table, write_section  # noqa: E402
 
 from cm2cl import fft, reference  # noqa: E402
 from cm2cl.admm import ADMMSolver  # noqa: E402
@@ -34,6 +34,16 @@ def bytes_per_iteration(nz, P, spec_plane, tv_iters, item=4):
     V = nz * P[0] * P[1] * item
     S = nz * int(np.prod(spec_plane)) * 2 * item
     return (5 + 1 + 1 + 6 + 8 + 13 * tv_iters) * V + 8 * S
+
+
+def fft_pass(s):
+    """The FFTs of one iteration: forward and inverse of every slab and of one plane each way."""
+    m = s.model
+    for (z0, z1), gs, ss in zip(m.bounds, s.g.slabs, s.spec.slabs):
+        m.plan(z1 - z0).forward(gs, ss)
+        m.plan(z1 - z0).inverse(ss, gs)
+    s._plan2d.forward(s.r.slabs[0], s.R.slabs[0])
+    s._plan2d.inverse(s.R.slabs[0], s.hx.slabs[0])
 
 
 def problem(my, mx, nz, rng):
@@ -69,15 +79,17 @@ def main(argv=None):
             t = time.perf_counter()
             ref = reference.admm(y, psf, p, padded_shape=s.P, dtype=np.float32, workers=-1)
             npy = (time.perf_counter() - t) / ref.iterations
+            fft_t = best_time(lambda: fft_pass(s), 3, sync=rt.queue.finish)
             V = nz * s.P[0] * s.P[1] * 4
             limit = 12 * V + s.model.psf_spectra.nbytes
             floor = bytes_per_iteration(nz, s.P, s.model.spec_plane, p.tv_iters) / bw
             rows.append([f"{my} x {mx} x {nz}", backend, f"{s.P[0]} x {s.P[1]}", f"{dev:.3f}", f"{npy:.3f}",
                          f"{npy / dev:.2f}", f"{s.allocated_bytes / 2**20:.0f}", f"{limit / 2**20:.0f}",
-                         f"{floor * 1e3:.1f}", f"{dev / floor:.1f}"])
+                         f"{floor * 1e3:.1f}", f"{dev / floor:.1f}", f"{fft_t * 1e3:.0f} ({fft_t / dev:.0%})"])
             print(" | ".join(rows[-1]), flush=True)
     head = ["sensor x planes", "FFT backend", "padded grid", "device s/iter", "numpy s/iter", "speed-up",
-            "device MiB", "limit MiB (12 V + PSF spectra)", "bandwidth floor ms", "x floor"]
+            "device MiB", "limit MiB (12 V + PSF spectra)", "bandwidth floor ms", "x floor",
+            "FFTs ms/iter (share)"]
     text = (f"Device: **{rt.caps.name}** ({rt.caps.platform}), {os.cpu_count()} host cores; float32, "
             f"tv_iters={p.tv_iters}; {a.iters} iterations after a warm-up run; copy kernel "
             f"{bw / 1e9:.1f} GB/s; 'device MiB' counts the buffers cm2cl allocates (FFT libraries may add "
