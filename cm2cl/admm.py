@@ -11,8 +11,6 @@ The float64 numpy twin is :func:`cm2cl.reference.admm`.
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 
 from . import checks, kernels
@@ -20,7 +18,8 @@ from .device import get_runtime
 from .errors import DeviceError, InputError
 from .forward import ForwardModel, choose_padded_shape, min_padded_shape
 from .fft import get_plan, resolve_backend
-from .params import ADMMParams, balance
+from .control import Control
+from .params import ADMMParams
 from .result import Reconstruction
 from .volume import Volume
 
@@ -188,12 +187,11 @@ class ADMMSolver:
         m.embed_from_sensor(sensor.slabs[0], self.cty.slabs[0])
         bounds = m.bounds
         nslab = len(bounds)
-        mu_v, mu_u, mu_w = p.mu_v, p.mu_u, p.mu_w
+        ctl = Control(p, callback, callback_every)
         aw, iso = R(p.tv_axial_weight), I(1 if p.tv_isotropic else 0)
         step = R(p.tv_step)
-        log, calm, stop = [], 0, "max_iter"
-        t0 = time.perf_counter()
         for it in range(1, p.max_iter + 1):
+            mu_v, mu_u, mu_w = ctl.mu_v, ctl.mu_u, ctl.mu_w
             self.x_step(mu_v, mu_u, mu_w)
             self.x, self.g = self.g, self.x  # x: new iterate, g: previous one (then scratch)
             self.partials.fill(0)
@@ -239,41 +237,20 @@ class ADMMSolver:
             self.k["reduce_partials"](q, (NSLOTS * L,), (L,), self.partials.data, self.out.data,
                                       I(self.pstride), cl.LocalMemory(L * self.dtype.itemsize))
             s = self.out.get().astype(np.float64)
-            r_v, s_v = np.sqrt(s[RV2]), mu_v * np.sqrt(s[SV2])
-            r_u, s_u = np.sqrt(s[RU2]), mu_u * np.sqrt(s[SU2])
-            r_w, s_w = np.sqrt(s[RW2]), mu_w * np.sqrt(s[SW2])
-            data = 0.5 * s[DATA2]
-            rel = np.sqrt(s[DX2]) / max(np.sqrt(s[X2]), 1e-300)
-            row = dict(iter=it, objective=data + p.l1 * s[L1] + p.tv * s[TV], data=data, l1=s[L1],
-                       tv=s[TV], rel_change=float(rel), primal=float(np.sqrt(r_v**2 + r_u**2 + r_w**2)),
-                       dual=float(np.sqrt(s_v**2 + s_u**2 + s_w**2)), r_v=float(r_v), s_v=float(s_v),
-                       r_u=float(r_u), s_u=float(s_u), r_w=float(r_w), s_w=float(s_w),
-                       mu_v=mu_v, mu_u=mu_u, mu_w=mu_w, seconds=time.perf_counter() - t0)
-            row = {k: float(v) if k != "iter" else v for k, v in row.items()}
-            if not np.isfinite(row["objective"]):
-                raise DeviceError(f"iteration {it}: the objective is not finite ({row['objective']}); "
-                                  "the device computation diverged")
-            log.append(row)
-            if callback is not None and (it % max(1, callback_every) == 0 or it == p.max_iter):
-                callback(row)
-            mu_v = balance(mu_v, r_v, s_v, p)
-            mu_u = balance(mu_u, r_u, s_u, p)
-            mu_w = balance(mu_w, r_w, s_w, p)
-            calm = calm + 1 if rel < p.tol else 0
-            if calm >= p.patience:
-                stop = "tol"
-                break
-            if p.tol_residual > 0 and max(r_v, s_v, r_u, s_u, r_w, s_w) < p.tol_residual:
-                stop = "tol_residual"
+            if not np.all(np.isfinite(s)):
+                raise DeviceError(f"iteration {it}: non-finite residuals or objective on the device; "
+                                  "the computation diverged")
+            if ctl.update(it, data2=s[DATA2], l1=s[L1], tv=s[TV], dx2=s[DX2], x2=s[X2], rv2=s[RV2],
+                          dv2=s[SV2], ru2=s[RU2], du2=s[SU2], rw2=s[RW2], dw2=s[SW2]):
                 break
         x = self.x.get()
         vol = np.maximum(x, 0) * (self.psf_scale / y_scale)
         return Reconstruction(
-            volume_padded=vol, crop=m.crop, log=log,
+            volume_padded=vol, crop=m.crop, log=ctl.log,
             scaling={"psf_scale": float(self.psf_scale), "y_scale": float(y_scale)},
             params=p.as_dict(),
             info={"device": rt.caps.name, "platform": rt.caps.platform, "dtype": self.dtype.name,
-                  "backend": self.backend, "padded_shape": self.P, "slabs": len(bounds), "stop": stop,
+                  "backend": self.backend, "padded_shape": self.P, "slabs": len(bounds), "stop": ctl.stop,
                   "device_bytes": int(self.allocated_bytes)})
 
 

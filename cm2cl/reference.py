@@ -121,11 +121,10 @@ def admm(y, psf, params=None, padded_shape=None, dtype=np.float64, workers=None,
     Same algorithm, order of updates, residuals, balancing and stopping as the device solver.
     ``workers`` is passed to scipy.fft (-1 = all cores). Returns a Reconstruction.
     """
-    import time
-
     import scipy.fft as sfft
 
-    from .params import ADMMParams, balance
+    from .control import Control
+    from .params import ADMMParams
     from .result import Reconstruction
 
     p = params if params is not None else ADMMParams.from_kwargs(**kw)
@@ -152,11 +151,10 @@ def admm(y, psf, params=None, padded_shape=None, dtype=np.float64, workers=None,
     pd = np.zeros((3,) + x.shape, dt)
     v = np.zeros(P, dt)
     xi = np.zeros(P, dt)
-    mu_v, mu_u, mu_w = p.mu_v, p.mu_u, p.mu_w
-    log, calm = [], 0
-    t0 = time.perf_counter()
-    stop = "max_iter"
+    ctl = Control(p, callback)
+    sq = lambda a: float(np.sum(np.asarray(a, np.float64) ** 2))  # noqa: E731
     for it in range(1, p.max_iter + 1):
+        mu_v, mu_u, mu_w = ctl.mu_v, ctl.mu_u, ctl.mu_w
         # x step: (mu_v H^T H + c I) x = H^T (mu_v v - xi) + (mu_u u - eta) + (mu_w w - rho)
         c = mu_u + mu_w
         B = np.conj(Hs) * rfft(mu_v * v - xi)[None] + rfft(mu_u * u - eta + mu_w * w - rho)
@@ -164,20 +162,14 @@ def admm(y, psf, params=None, padded_shape=None, dtype=np.float64, workers=None,
         HX = s / (c + mu_v * hn2)
         x_new = irfft((B - mu_v * np.conj(Hs) * HX[None]) / c).astype(dt)
         hx = irfft(HX).astype(dt)
-        dx2 = float(np.sum((x_new.astype(np.float64) - x) ** 2))
+        dx2 = sq(x_new.astype(np.float64) - x)
         x = x_new
         # w step: l1 + non-negativity
         w_new = np.maximum(x + rho / mu_w - p.l1 / mu_w, 0).astype(dt)
         rho += mu_w * (x - w_new)
-        r_w = np.linalg.norm(x - w_new)
-        s_w = mu_w * np.linalg.norm(w_new - w)
-        w = w_new
         # v step: crop-aware data update
         v_new = ((cty + mu_v * hx + xi) / (mask + mu_v)).astype(dt)
         xi += mu_v * (hx - v_new)
-        r_v = np.linalg.norm(hx - v_new)
-        s_v = mu_v * np.linalg.norm(v_new - v)
-        v = v_new
         # u step: TV prox, warm-started dual
         z = x + eta / mu_u
         if p.tv > 0:
@@ -186,37 +178,18 @@ def admm(y, psf, params=None, padded_shape=None, dtype=np.float64, workers=None,
             u_new = z
         u_new = u_new.astype(dt)
         eta += mu_u * (x - u_new)
-        r_u = np.linalg.norm(x - u_new)
-        s_u = mu_u * np.linalg.norm(u_new - u)
-        u = u_new
-        # log
-        data = 0.5 * float(np.sum((crop(hx.astype(np.float64), M) - ys) ** 2))
-        l1 = float(np.abs(x).sum())
-        tv = tv_value(x, p.tv_axial_weight, p.tv_isotropic)
-        rel = np.sqrt(dx2) / max(np.linalg.norm(x), 1e-300)
-        row = dict(iter=it, objective=data + p.l1 * l1 + p.tv * tv, data=data, l1=l1, tv=tv,
-                   rel_change=float(rel), primal=float(np.sqrt(r_v**2 + r_u**2 + r_w**2)),
-                   dual=float(np.sqrt(s_v**2 + s_u**2 + s_w**2)), r_v=float(r_v), s_v=float(s_v),
-                   r_u=float(r_u), s_u=float(s_u), r_w=float(r_w), s_w=float(s_w),
-                   mu_v=mu_v, mu_u=mu_u, mu_w=mu_w, seconds=time.perf_counter() - t0)
-        log.append(row)
-        if callback is not None:
-            callback(row)
-        mu_v = balance(mu_v, r_v, s_v, p)
-        mu_u = balance(mu_u, r_u, s_u, p)
-        mu_w = balance(mu_w, r_w, s_w, p)
-        calm = calm + 1 if rel < p.tol else 0
-        if calm >= p.patience:
-            stop = "tol"
-            break
-        if p.tol_residual > 0 and max(r_v, s_v, r_u, s_u, r_w, s_w) < p.tol_residual:
-            stop = "tol_residual"
+        done = ctl.update(it, data2=sq(crop(hx.astype(np.float64), M) - ys), l1=float(np.abs(x).sum()),
+                          tv=tv_value(x, p.tv_axial_weight, p.tv_isotropic), dx2=dx2, x2=sq(x),
+                          rv2=sq(hx - v_new), dv2=sq(v_new - v), ru2=sq(x - u_new), du2=sq(u_new - u),
+                          rw2=sq(x - w_new), dw2=sq(w_new - w))
+        v, u, w = v_new, u_new, w_new
+        if done:
             break
     oy, ox = crop_offsets(M, P)
     vol = np.maximum(x, 0) * (s_h / s_y)
     return Reconstruction(volume_padded=vol, crop=(slice(oy, oy + M[0]), slice(ox, ox + M[1])),
-                          log=log, scaling={"psf_scale": s_h, "y_scale": s_y},
-                          params=p.as_dict(), info={"device": "numpy", "dtype": dt.name, "stop": stop,
+                          log=ctl.log, scaling={"psf_scale": s_h, "y_scale": s_y},
+                          params=p.as_dict(), info={"device": "numpy", "dtype": dt.name, "stop": ctl.stop,
                                                     "padded_shape": P})
 
 

@@ -61,22 +61,22 @@ inline void reduce_to(__global real_t *partials, const int stride, __local real_
 
 /* Coordinates (x, y, z) of element i = (z*ny + y)*nx + x of a slab of ny x nx planes, and their
  * advance by a fixed stride: grid-stride loops then need no integer division per element. */
-typedef struct { int x, y, z; } coord_t;
+typedef struct { int cx, cy, cz; } coord_t;
 
 inline coord_t coords_of(const size_t i, const int ny, const int nx) {
     coord_t c;
-    c.x = (int)(i % (size_t)nx);
-    c.y = (int)((i / (size_t)nx) % (size_t)ny);
-    c.z = (int)(i / ((size_t)nx * (size_t)ny));
+    c.cx = (int)(i % (size_t)nx);
+    c.cy = (int)((i / (size_t)nx) % (size_t)ny);
+    c.cz = (int)(i / ((size_t)nx * (size_t)ny));
     return c;
 }
 
 inline void coords_advance(coord_t *c, const coord_t s, const int ny, const int nx) {
-    c->x += s.x;
-    if (c->x >= nx) { c->x -= nx; c->y += 1; }
-    c->y += s.y;
-    if (c->y >= ny) { c->y -= ny; c->z += 1; }
-    c->z += s.z;
+    c->cx += s.cx;
+    if (c->cx >= nx) { c->cx -= nx; c->cy += 1; }
+    c->cy += s.cy;
+    if (c->cy >= ny) { c->cy -= ny; c->cz += 1; }
+    c->cz += s.cz;
 }
 
 /* The elements [*first, *end) with stride *step that a work-item reduces (it sums K values; the
@@ -100,3 +100,31 @@ inline void reduction_range(const size_t n, const int K, const int contiguous,
         *step = L;
     }
 }
+
+/* Forward differences (gx, gy, aw * gz) at element i = (z*ny + y)*nx + x of a slab of `planes`
+ * planes, Neumann boundary (zero past the last index); v_next is the next slab of the volume
+ * (its first plane is the z+1 neighbour of the last plane) when has_next.  The lateral loads use
+ * clamped indices and selects, so the x direction stays vectorisable. */
+inline void grad_at(__global const real_t *v, __global const real_t *v_next, const int has_next,
+                    const size_t i, const int z, const int y, const int x,
+                    const int planes, const int ny, const int nx, const real_t aw,
+                    real_t *gx, real_t *gy, real_t *gz) {
+    const size_t plane = (size_t)ny * nx;
+    const real_t c = v[i];
+    const real_t r = v[i + (size_t)(x < nx - 1)], d = v[i + (size_t)(y < ny - 1) * nx];
+    *gx = (x < nx - 1) ? r - c : (real_t)0;
+    *gy = (y < ny - 1) ? d - c : (real_t)0;
+    *gz = 0;
+    if (z < planes - 1) *gz = aw * (v[i + plane] - c);
+    else if (has_next) *gz = aw * (v_next[i - (size_t)z * plane] - c);
+}
+
+/* Loop over the elements a work-item reduces (see reduction_range), with their coordinates
+ * (x, y, z) kept up to date without divisions.  Use: FOR_EACH_REDUCED(i, n, ...) { body } */
+#define FOR_EACH_REDUCED(i, n, K, contiguous, ny, nx, x, y, z)                                  \
+    size_t i##_first, i##_end, i##_step;                                                        \
+    reduction_range(n, K, contiguous, &i##_first, &i##_end, &i##_step);                         \
+    coord_t i##_c = coords_of(i##_first, ny, nx);                                               \
+    const coord_t i##_s = coords_of(i##_step, ny, nx);                                          \
+    for (size_t i = i##_first; i < i##_end; i += i##_step, coords_advance(&i##_c, i##_s, ny, nx)) \
+        for (int x = i##_c.cx, y = i##_c.cy, z = i##_c.cz, i##_once = 1; i##_once; i##_once = 0)

@@ -6,14 +6,8 @@
 inline real_t tv_at(__global const real_t *x, __global const real_t *x_next, const int has_next,
                     const size_t i, const int z, const int y, const int xx,
                     const int planes, const int ny, const int nx, const real_t aw, const int iso) {
-    const size_t plane = (size_t)ny * nx;
-    const real_t c = x[i];
-    const real_t xr = x[i + (size_t)(xx < nx - 1)], xd = x[i + (size_t)(y < ny - 1) * nx];
-    const real_t gx = (xx < nx - 1) ? xr - c : (real_t)0;
-    const real_t gy = (y < ny - 1) ? xd - c : (real_t)0;
-    real_t gz = 0;
-    if (z < planes - 1) gz = aw * (x[i + plane] - c);
-    else if (has_next) gz = aw * (x_next[i - (size_t)z * plane] - c);
+    real_t gx, gy, gz;
+    grad_at(x, x_next, has_next, i, z, y, xx, planes, ny, nx, aw, &gx, &gy, &gz);
     return iso ? sqrt(gx * gx + gy * gy + gz * gz) : fabs(gx) + fabs(gy) + fabs(gz);
 }
 
@@ -30,12 +24,7 @@ __kernel void update_w(__global const real_t *x, __global const real_t *x_next, 
     const size_t n = (size_t)planes * ny * nx;
     real_t a0 = 0, a1 = 0, a2 = 0, a3 = 0, a4 = 0, a5 = 0;
     const real_t inv_mu = (real_t)1 / mu_w;
-    size_t i0, i1, di;
-    reduction_range(n, per_item, contiguous, &i0, &i1, &di);
-    coord_t cc = coords_of(i0, ny, nx);
-    const coord_t st = coords_of(di, ny, nx);
-    for (size_t i = i0; i < i1; i += di, coords_advance(&cc, st, ny, nx)) {
-        const int xx = cc.x, y = cc.y, z = cc.z;
+    FOR_EACH_REDUCED(i, n, per_item, contiguous, ny, nx, xx, y, z) {
         const real_t xi = x[i];
         const real_t r = rho[i];
         const real_t wn = fmax(xi + (r - l1) * inv_mu, (real_t)0);

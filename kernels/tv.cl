@@ -47,14 +47,8 @@ __kernel void tv_dual_step(__global real_t *px, __global real_t *py, __global re
     const int xx = get_global_id(0), y = get_global_id(1), z = get_global_id(2);
     if (xx >= nx || y >= ny || z >= planes) return;
     const size_t i = ((size_t)z * ny + y) * nx + xx;
-    const size_t plane = (size_t)ny * nx;
-    const real_t c = g[i];
-    const real_t gr = g[i + (size_t)(xx < nx - 1)], gd = g[i + (size_t)(y < ny - 1) * nx];
-    const real_t gx = (xx < nx - 1) ? gr - c : (real_t)0;
-    const real_t gy = (y < ny - 1) ? gd - c : (real_t)0;
-    real_t gz = 0;
-    if (z < planes - 1) gz = aw * (g[i + plane] - c);
-    else if (has_next) gz = aw * (g_next[i - (size_t)z * plane] - c);
+    real_t gx, gy, gz;
+    grad_at(g, g_next, has_next, i, z, y, xx, planes, ny, nx, aw, &gx, &gy, &gz);
     real_t a = px[i] + step * gx, b = py[i] + step * gy, d = pz[i] + step * gz;
     if (iso) {
         const real_t nrm = fmax((real_t)1, sqrt(a * a + b * b + d * d));
@@ -79,12 +73,7 @@ __kernel void tv_finish(__global real_t *u, __global real_t *eta, __global const
     const size_t n = (size_t)planes * ny * nx;
     real_t a0 = 0, a1 = 0;
     const real_t inv_mu = (real_t)1 / mu_u;
-    size_t i0, i1, di;
-    reduction_range(n, per_item, contiguous, &i0, &i1, &di);
-    coord_t cc = coords_of(i0, ny, nx);
-    const coord_t st = coords_of(di, ny, nx);
-    for (size_t i = i0; i < i1; i += di, coords_advance(&cc, st, ny, nx)) {
-        const int xx = cc.x, y = cc.y, z = cc.z;
+    FOR_EACH_REDUCED(i, n, per_item, contiguous, ny, nx, xx, y, z) {
         const real_t xv = x[i], e = eta[i];
         real_t un = xv + e * inv_mu;
         if (tau > 0)
