@@ -42,8 +42,9 @@ def build_parser() -> argparse.ArgumentParser:
 def _registrars():
     """Sub-commands that live beside their own concern."""
     from .recon_cli import register as reconstruct
+    from .simulate.cli import register as simulate
 
-    return [reconstruct]
+    return [simulate, reconstruct]
 
 
 def main(argv=None) -> int:
