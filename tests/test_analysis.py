@@ -105,3 +105,12 @@ def test_bad_inputs():
         an.pcc(np.ones((3, 3)), np.ones((3, 3)), register=False)
     with pytest.raises(InputError, match="mask shape"):
         an.local_sbr(np.ones((4, 4)), np.ones((3, 3), bool), 2)
+
+
+def test_content_region():
+    vol = np.zeros((2, 50, 60))
+    vol[1, 20, 30] = 1.0
+    vol[0, 25, 40] = 0.5
+    rs, cs = an.content_region(vol, margin=3)
+    assert (rs.start, rs.stop, cs.start, cs.stop) == (17, 29, 27, 44)
+    assert an.content_region(np.zeros((1, 4, 5))) == (slice(0, 4), slice(0, 5))

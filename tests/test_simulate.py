@@ -440,3 +440,22 @@ def test_missing_scene_files():
         sim.load_scene("nowhere/x.toml")
     with pytest.raises(InputError, match="built-in: demo_beads"):
         sim.load_scene("no_such_scene")
+
+
+# ---------------------------------------------------------------------------------------------
+# the demo (short run; the full demo uses 200 iterations)
+# ---------------------------------------------------------------------------------------------
+
+def test_demo_recovers_the_beads(tmp_path):
+    pytest.importorskip("matplotlib")
+    from cm2cl.demo import demo
+    s = demo(tmp_path / "demo", max_iter=60, verbose=False)
+    assert s["emitters"]["true"] == 12 and s["emitters"]["recall"] >= 0.9
+    # lateral errors well under a voxel (42 um), axial well under a plane (250 um)
+    assert s["lateral_error_um"]["rms"] < 0.3 * s["voxel_size_um"][1]
+    assert s["axial_error_um"]["rms"] < 0.5 * s["voxel_size_um"][0]
+    names = sorted(p.name for p in (tmp_path / "demo").iterdir())
+    assert names == ["demo.json", "mip_ground_truth.png", "mip_reconstruction.png", "reconstruction.tif",
+                     "reconstruction_log.csv", "simulation"]
+    vol, meta = read_tiff(tmp_path / "demo" / "reconstruction.tif")
+    assert vol.shape == (5, 243, 324) and meta["depths_um"] == [-500, -250, 0, 250, 500]

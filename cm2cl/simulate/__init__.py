@@ -39,7 +39,7 @@ from .render import (RenderGrid, Sample, available_bytes, estimate_bytes, padded
                      rasterise, render_emitters, render_grid, render_shift_invariant, resolve_backend)
 from .scene import Scene, builtin_scenes, load_scene, resolve_scene
 
-__all__ = ["simulate", "run", "SimulationResult", "load_scene", "builtin_scenes", "resolve_scene", "Scene"]
+__all__ = ["simulate", "run", "write", "SimulationResult", "load_scene", "builtin_scenes", "resolve_scene", "Scene"]
 
 _STAGE_KEYS = {"objects": 1, "object": 2, "optics": 3, "sensor": 4, "random_seed": 5}
 
@@ -55,6 +55,7 @@ class SimulationResult:
     voxel_size_um: tuple             # (dz, dy, dx) of the ground truth (object space, nominal)
     emitters: dict | None            # bead truth table (None without beads)
     record: dict = field(default_factory=dict)
+    scene: Scene | None = None
 
 
 def _rng(seed, stage, index=0):
@@ -79,8 +80,11 @@ def _choose_path(scene: Scene, objects) -> str:
     return "grid"
 
 
-def run(scene, seed: int | None = None) -> SimulationResult:
-    """Simulate a scene (name, path, dict or :class:`Scene`) in memory."""
+def run(scene, seed: int | None = None, device=None) -> SimulationResult:
+    """Simulate a scene (name, path, dict or :class:`Scene`) in memory.
+
+    ``seed`` overrides the scene's seed; ``device`` (index, name fragment, ...) picks the OpenCL
+    device of the forward model (default: see :mod:`cm2cl.device`)."""
     t_start = time.perf_counter()
     timings = {}
     scene = load_scene(scene)
@@ -102,7 +106,7 @@ def run(scene, seed: int | None = None) -> SimulationResult:
         render_depths = (depths[:, None] + sub[None, :]).ravel()
     else:
         render_depths = depths.copy()
-    backend = resolve_backend(scene.render["backend"])
+    backend = resolve_backend(scene.render["backend"], device)
     padded = padded_shape_for(optics.shape, backend)
     need = estimate_bytes(len(render_depths), padded, optics.shape)
     have = available_bytes()
@@ -158,9 +162,10 @@ def run(scene, seed: int | None = None) -> SimulationResult:
     render_info = {"path": path, "backend": backend if path != "emitters" else "numpy",
                    "padded_shape": list(padded), "render_planes": len(render_depths), "z_oversample": k}
     if path == "shift_invariant":
-        expected = render_shift_invariant(sample.total_volume(), psf_render, padded, backend)
+        expected = render_shift_invariant(sample.total_volume(), psf_render, padded, backend, device)
     elif path == "grid":
-        expected, info = render_grid(sample.total_volume(), grid, psf_kw, scene.render["grid_mm"], backend)
+        expected, info = render_grid(sample.total_volume(), grid, psf_kw, scene.render["grid_mm"], backend,
+                                     device=device)
         render_info.update(info)
     else:
         expected = render_emitters(sample.beads, optics, psf_kw, sample.bead_halo)
@@ -205,7 +210,7 @@ def run(scene, seed: int | None = None) -> SimulationResult:
         "timings_s": {**timings, "total_s": time.perf_counter() - t_start},
     }
     return SimulationResult(measurement, expected, psf.astype(np.float32), gt.astype(np.float32), depths,
-                            voxel, emitters, record)
+                            voxel, emitters, record, scene)
 
 
 def _truth_table(beads, grid: RenderGrid, depths, dz) -> dict:
@@ -250,15 +255,7 @@ def _write_outputs(result: SimulationResult, scene: Scene, tmp: Path) -> dict:
     return files
 
 
-def simulate(scene, outdir, seed: int | None = None) -> dict:
-    """Simulate a scene and write ``measurement.tif``, ``psf.tif``, ``ground_truth.tif`` (TIFF with
-    voxel sizes and depths), ``emitters.csv`` (bead scenes) and ``simulation.json`` (the record:
-    scene with defaults, seed, effects applied, render path, timings) into ``outdir``.
-
-    Files are written into a temporary directory beside ``outdir`` and moved in at the end, the
-    JSON record last, so an interrupted run never leaves output that looks complete.
-    Returns the record (as written to simulation.json)."""
-    scene = load_scene(scene)
+def _output_parent(outdir) -> Path:
     out = Path(outdir)
     if out.exists() and not out.is_dir():
         raise InputError(f"output '{out}': exists and is not a directory")
@@ -267,8 +264,31 @@ def simulate(scene, outdir, seed: int | None = None) -> dict:
         parent.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise InputError(f"output '{out}': cannot create its parent directory ({exc})") from exc
-    result = run(scene, seed)
+    return parent
+
+
+def simulate(scene, outdir, seed: int | None = None, device=None) -> dict:
+    """Simulate a scene and write ``measurement.tif``, ``psf.tif``, ``ground_truth.tif`` (TIFF with
+    voxel sizes and depths), ``emitters.csv`` (bead scenes) and ``simulation.json`` (the record:
+    scene with defaults, seed, effects applied, render path, timings) into ``outdir``.
+
+    Files are written into a temporary directory beside ``outdir`` and moved in at the end, the
+    JSON record last, so an interrupted run never leaves output that looks complete.
+    Returns the record (as written to simulation.json)."""
+    scene = load_scene(scene)
+    _output_parent(outdir)
+    return write(run(scene, seed, device), outdir)
+
+
+def write(result: SimulationResult, outdir) -> dict:
+    """Write a :class:`SimulationResult` into ``outdir`` as :func:`simulate` does; returns the record."""
+    scene = result.scene
+    out = Path(outdir)
+    parent = _output_parent(out)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=parent))
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(tmp, 0o777 & ~umask)          # mkdtemp makes it private; the result is a normal directory
     try:
         files = _write_outputs(result, scene, tmp)
         record = dict(result.record)

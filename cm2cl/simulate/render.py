@@ -201,27 +201,31 @@ def available_bytes() -> int:
     return 4 << 30
 
 
-def resolve_backend(backend: str) -> str:
-    """'opencl', 'numpy', or 'auto' = opencl when a device is there, else numpy (recorded)."""
+def resolve_backend(backend: str, device=None) -> str:
+    """'opencl', 'numpy', or 'auto' = opencl when any OpenCL device exists, else numpy (the record
+    says which). A requested device (argument or CM2CL_DEVICE) that cannot be had is an error."""
     if backend in ("opencl", "numpy"):
         return backend
     if backend != "auto":
         raise InputError(f"render.backend: unknown backend {backend!r} (known: auto, opencl, numpy)")
+    from ..device import get_runtime, list_devices
+    from ..errors import DeviceError
     try:
-        from ..device import get_runtime
-        get_runtime()
-        return "opencl"
-    except Exception:  # noqa: BLE001 - any device failure means no OpenCL for the simulator
+        present = bool(list_devices())
+    except DeviceError:            # pyopencl missing
+        present = False
+    if not present and device is None:
         return "numpy"
+    get_runtime(device)            # a bad CM2CL_DEVICE / --device is an error, not a fallback
+    return "opencl"
 
 
-def forward(psf, x, padded_shape, backend: str) -> np.ndarray:
+def forward(psf, x, padded_shape, backend: str, device=None) -> np.ndarray:
     """y = C sum_i h_i (*) x_i: the project's forward operator (device or float64 reference)."""
     if backend == "opencl":
         from ..forward import ForwardModel
-        return np.asarray(ForwardModel(np.ascontiguousarray(psf, np.float32),
-                                       padded_shape=padded_shape).forward(np.ascontiguousarray(x, np.float32)),
-                          np.float64)
+        model = ForwardModel(np.ascontiguousarray(psf, np.float32), padded_shape=padded_shape, device=device)
+        return np.asarray(model.forward(np.ascontiguousarray(x, np.float32)), np.float64)
     from .. import reference
     return reference.forward(psf, x, padded_shape)
 
@@ -230,13 +234,13 @@ def forward(psf, x, padded_shape, backend: str) -> np.ndarray:
 # the three paths
 # --------------------------------------------------------------------------------------------
 
-def render_shift_invariant(volume, psf, padded_shape, backend: str = "opencl") -> np.ndarray:
+def render_shift_invariant(volume, psf, padded_shape, backend: str = "opencl", device=None) -> np.ndarray:
     """Expected sensor image of a render-grid volume with the on-axis PSF stack (nz, My, Mx):
     exactly ``forward(psf, volume)``. Empty planes are skipped (they contribute nothing)."""
     used = np.flatnonzero(np.asarray(volume).reshape(volume.shape[0], -1).any(axis=1))
     if used.size == 0:
         return np.zeros(psf.shape[1:])
-    return forward(psf[used], volume[used], padded_shape, backend)
+    return forward(psf[used], volume[used], padded_shape, backend, device)
 
 
 def _hat_nodes(n, axis, spacing):
@@ -250,7 +254,7 @@ def _hat_nodes(n, axis, spacing):
 
 
 def render_grid(volume, grid: RenderGrid, psf_kw: dict, node_spacing_mm: float,
-                backend: str = "opencl", chunk: int = 16) -> tuple:
+                backend: str = "opencl", chunk: int = 16, device=None) -> tuple:
     """Shift-variant image by the local-convolution model on a lateral grid of field points every
     ``node_spacing_mm`` (object space at the nominal distance). Returns (image, info)."""
     opt = grid.optics
@@ -268,7 +272,7 @@ def render_grid(volume, grid: RenderGrid, psf_kw: dict, node_spacing_mm: float,
     def flush():
         nonlocal image
         if kernels:
-            image += forward(np.stack(kernels), np.stack(planes), grid.padded_shape, backend)
+            image += forward(np.stack(kernels), np.stack(planes), grid.padded_shape, backend, device)
             kernels.clear()
             planes.clear()
 
