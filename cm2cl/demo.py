@@ -59,8 +59,7 @@ def _object_positions(index, optics, depths_um):
 def demo(outdir="cm2cl-demo", *, device=None, seed=None, max_iter: int = RECON["max_iter"],
          verbose: bool = True) -> dict:
     """Run the demo; returns its summary (also written to OUTDIR/demo.json)."""
-    from . import analysis
-    from .admm import reconstruct
+    from . import analysis, reconstruct
     from .io import write_tiff
     from .simulate import load_scene, run as simulate_run, write as simulate_write
 

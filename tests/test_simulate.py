@@ -383,6 +383,16 @@ def test_cli_simulate_and_list(tmp_path, capsys):
         args.func(args)
 
 
+def test_main_cli_turns_bad_scenes_into_exit_code_2(tmp_path, capsys):
+    from cm2cl.cli import main
+    (tmp_path / "bad.toml").write_text('[volume]\nsize_mm = [1.0, 1.0, 0.0]\n[[objects]]\ntype = "bead"\n')
+    assert main(["simulate", str(tmp_path / "bad.toml"), "-o", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == ("cm2cl: error: scene 'bad.toml': objects[0].type: unknown object 'bead' "
+                   "(known: beads, fibres, target, vessels)")
+    assert not (tmp_path / "o").exists()
+
+
 # ---------------------------------------------------------------------------------------------
 # bad input
 # ---------------------------------------------------------------------------------------------
