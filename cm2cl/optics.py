@@ -550,12 +550,18 @@ def array_psf(optics: CM2Optics, z_um: float = 0.0, x_mm: float = 0.0, y_mm: flo
     return out
 
 
-def axial_psf_stack(optics: CM2Optics, depths_um, *, x_mm: float = 0.0, y_mm: float = 0.0,
-                    dtype=np.float32, **psf_kw) -> np.ndarray:
-    """(nz, My, Mx) PSFs of a point at (x_mm, y_mm) for each depth in ``depths_um`` (um).
-
-    Use :func:`depth_planes` for a range with a step. Keyword arguments go to :func:`array_psf`.
+def axial_psf_stack(optics: CM2Optics, depths_um=None, *, z_range_um=None, step_um=None,
+                    x_mm: float = 0.0, y_mm: float = 0.0, dtype=np.float32, **psf_kw) -> np.ndarray:
+    """(nz, My, Mx) PSFs of a point at (x_mm, y_mm) for each depth in ``depths_um`` (um), or over
+    ``z_range_um=(start, stop)`` every ``step_um`` (inclusive, see :func:`depth_planes`).
+    Other keyword arguments go to :func:`array_psf`.
     """
+    if (depths_um is None) == (z_range_um is None):
+        raise InputError("axial_psf_stack: give depths_um or z_range_um (with step_um), not both")
+    if z_range_um is not None:
+        if step_um is None:
+            raise InputError("axial_psf_stack: z_range_um needs step_um")
+        depths_um = depth_planes(float(z_range_um[0]), float(z_range_um[1]), float(step_um))
     depths = np.atleast_1d(np.asarray(depths_um, dtype=float))
     out = np.zeros((depths.size,) + optics.shape, dtype=dtype)
     for i, z in enumerate(depths):

@@ -194,6 +194,7 @@ def test_axial_stack_shapes_and_depths():
     assert zs.tolist() == [-500, -250, 0, 250, 500]
     st = axial_psf_stack(o, zs)
     assert st.shape == (5, 243, 324) and st.dtype == np.float32
+    assert np.array_equal(st, axial_psf_stack(o, z_range_um=(-500, 500), step_um=250))
     assert np.allclose(st.sum(axis=(1, 2)), 1.0, atol=1e-4)
     # the foci shear axially: the side foci move inward with depth (Eq. 1)
     seps = [np.diff(foci_centroids(p, grow=1).reshape(3, 3, 2)[1, :, 1]).mean() for p in st]
