@@ -41,10 +41,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _registrars():
     """Sub-commands that live beside their own concern."""
+    from .demo import register as demo
     from .recon_cli import register as reconstruct
     from .simulate.cli import register as simulate
 
-    return [simulate, reconstruct]
+    return [demo, simulate, reconstruct]
 
 
 def main(argv=None) -> int:
