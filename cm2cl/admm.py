@@ -26,8 +26,9 @@ from .volume import Volume
 # Slots of the per-iteration reduction buffer.
 DX2, X2, L1, TV, RW2, SW2, RV2, SV2, DATA2, RU2, SU2 = range(11)
 NSLOTS = 11
-#: elements each work-item of a reduction handles
-PER_ITEM = 16
+#: elements each work-item of a reduction handles (PoCL on 2 cores: 64 beat 16 and 256 by
+#: 1.1-1.6x; GPUs keep hundreds of work-groups at this size for a few million voxels)
+PER_ITEM = 64
 
 #: real volumes on the padded grid the solver keeps (x, x_old/scratch, u, w, eta, rho, px, py, pz)
 REAL_VOLUMES = 9

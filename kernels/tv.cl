@@ -52,7 +52,8 @@ __kernel void tv_dual_step(__global real_t *px, __global real_t *py, __global re
     real_t a = px[i] + step * gx, b = py[i] + step * gy, d = pz[i] + step * gz;
     if (iso) {
         const real_t nrm = fmax((real_t)1, sqrt(a * a + b * b + d * d));
-        a /= nrm; b /= nrm; d /= nrm;
+        const real_t inv = (real_t)1 / nrm;
+        a *= inv; b *= inv; d *= inv;
     } else {
         a = clamp(a, (real_t)-1, (real_t)1);
         b = clamp(b, (real_t)-1, (real_t)1);

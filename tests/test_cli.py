@@ -12,7 +12,7 @@ from test_admm import bead_problem
 
 def _files(tmp_path):
     psf, _, y = bead_problem(6)
-    tifffile.imwrite(tmp_path / "psf.tif", (psf * 1000 + 100).astype(np.uint16))
+    tifffile.imwrite(tmp_path / "psf.tif", (psf * 1000 + 100).astype(np.uint16), photometric="minisblack")
     tifffile.imwrite(tmp_path / "meas.tif", (y * 1000 + 100).astype(np.uint16))
     return tmp_path / "meas.tif", tmp_path / "psf.tif"
 

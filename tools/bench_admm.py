@@ -12,7 +12,6 @@ from __future__ import annotations
 import argparse
 import os
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -34,6 +33,11 @@ def bytes_per_iteration(nz, P, spec_plane, tv_iters, item=4):
     V = nz * P[0] * P[1] * item
     S = nz * int(np.prod(spec_plane)) * 2 * item
     return (5 + 1 + 1 + 6 + 8 + 13 * tv_iters) * V + 8 * S
+
+
+def per_iteration(rec) -> float:
+    """Median seconds between consecutive iterations of a run's log (setup and read-back excluded)."""
+    return float(np.median(np.diff(rec.log_array("seconds"))))
 
 
 def fft_pass(s):
@@ -72,13 +76,9 @@ def main(argv=None):
         psf, y = problem(my, mx, nz, rng)
         for backend in fft.available_backends():
             s = ADMMSolver(psf, p, backend=backend)
-            s.run(y, callback=None)  # warm-up: kernel builds, FFT plans
-            t = time.perf_counter()
-            rec = s.run(y)
-            dev = (time.perf_counter() - t) / rec.iterations
-            t = time.perf_counter()
-            ref = reference.admm(y, psf, p, padded_shape=s.P, dtype=np.float32, workers=-1)
-            npy = (time.perf_counter() - t) / ref.iterations
+            s.run(y)  # warm-up: kernel builds, FFT plans
+            dev = per_iteration(s.run(y))
+            npy = per_iteration(reference.admm(y, psf, p, padded_shape=s.P, dtype=np.float32, workers=-1))
             fft_t = best_time(lambda: fft_pass(s), 3, sync=rt.queue.finish)
             V = nz * s.P[0] * s.P[1] * 4
             limit = 12 * V + s.model.psf_spectra.nbytes
@@ -91,7 +91,8 @@ def main(argv=None):
             "device MiB", "limit MiB (12 V + PSF spectra)", "bandwidth floor ms", "x floor",
             "FFTs ms/iter (share)"]
     text = (f"Device: **{rt.caps.name}** ({rt.caps.platform}), {os.cpu_count()} host cores; float32, "
-            f"tv_iters={p.tv_iters}; {a.iters} iterations after a warm-up run; copy kernel "
+            f"tv_iters={p.tv_iters}; median time between iterations over {a.iters} iterations after a "
+            f"warm-up run; copy kernel "
             f"{bw / 1e9:.1f} GB/s; 'device MiB' counts the buffers cm2cl allocates (FFT libraries may add "
             f"scratch). numpy = `cm2cl.reference.admm(dtype=float32, workers=-1)`. "
             f"`python tools/bench_admm.py`\n\n" + markdown_table(head, rows))
