@@ -96,7 +96,7 @@ class ADMMSolver:
         self.hn2 = Volume(rt, [(0, 1)], m.spec_plane, self.dtype)
         nf = np.uint64(m.nfreq)
         for first, ((z0, z1), hs) in zip([1] + [0] * len(m.bounds), m.psf_spectra):
-            self.k["spectral_power"](rt.queue, (m.nfreq,), None, self.hn2.slabs[0].data, hs.data,
+            kernels.launch(rt, self.k["spectral_power"], (m.nfreq,), self.hn2.slabs[0].data, hs.data,
                                      np.int32(z1 - z0), nf, np.int32(first))
         hmax = float(self.hn2.slabs[0].get().max())
         self.psf_scale = 1.0 / np.sqrt(hmax) if params.normalize else 1.0
@@ -124,11 +124,11 @@ class ADMMSolver:
 
     # ---- launch helpers --------------------------------------------------------------------
     def _ew(self, name, n, *args):
-        self.k[name](self.rt.queue, (int(n),), None, *args)
+        kernels.launch(self.rt, self.k[name], (int(n),), *args)
 
     def _grid(self, name, planes, *args):
         """Launch over a (nx, ny, planes) range: coordinates without divisions."""
-        self.k[name](self.rt.queue, (self.P[1], self.P[0], int(planes)), None, *args)
+        kernels.launch(self.rt, self.k[name], (self.P[1], self.P[0], int(planes)), *args)
 
     def _red(self, name, n, slot, *args):
         """Launch a fused update + reduction over n elements; its sums go to partials[slot...]."""

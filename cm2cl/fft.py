@@ -109,7 +109,7 @@ class FFTPlan:
             self._app.fft(src, dst)
         else:
             n = np.uint64(src.size)
-            self._r2c(self.rt.queue, (src.size,), None, dst.data, src.data, n)
+            kernels.launch(self.rt, self._r2c, (src.size,), dst.data, src.data, n)
             self._fft(dst, dst, inverse=0)
         return dst
 
@@ -122,7 +122,7 @@ class FFTPlan:
         else:
             self._fft(src, src, inverse=1)
             n = np.uint64(dst.size)
-            self._re(self.rt.queue, (dst.size,), None, dst.data, src.data, n)
+            kernels.launch(self.rt, self._re, (dst.size,), dst.data, src.data, n)
         return dst
 
 

@@ -121,35 +121,33 @@ class ForwardModel:
     # ---- device-level building blocks (arrays stay on the device) ------------------------
     def mac(self, spectra: Volume, out, comp):
         """out = sum_i H_i X_i over all depth planes (Kahan-compensated); out, comp: plane arrays."""
-        q = self.rt.queue
         n = np.uint64(self.nfreq)
         for first, ((z0, z1), xs), hs in zip([1] + [0] * len(self.bounds), spectra, self.psf_spectra.slabs):
-            self._k_mac(q, (self.nfreq,), None, out.data, comp.data, hs.data, xs.data,
-                        np.int32(z1 - z0), n, np.int32(first))
+            kernels.launch(self.rt, self._k_mac, (self.nfreq,), out.data, comp.data, hs.data, xs.data,
+                           np.int32(z1 - z0), n, np.int32(first))
         return out
 
     def conj_bcast(self, v, spectra: Volume):
         """spectra_i = conj(H_i) v for every depth plane."""
-        q = self.rt.queue
         n = np.uint64(self.nfreq)
         for ((z0, z1), xs), hs in zip(spectra, self.psf_spectra.slabs):
-            self._k_bcast(q, (self.nfreq,), None, xs.data, hs.data, v.data, np.int32(z1 - z0), n)
+            kernels.launch(self.rt, self._k_bcast, (self.nfreq,), xs.data, hs.data, v.data, np.int32(z1 - z0), n)
         return spectra
 
     def crop_to_sensor(self, padded, out):
         my, mx = self.sensor_shape
         py, px = self.padded_shape
         planes = padded.shape[0] if padded.ndim == 3 else 1
-        self._k_crop(self.rt.queue, (mx, my, planes), None, out.data, padded.data,
-                     *map(np.int32, (my, mx, py, px, *self.offsets)))
+        kernels.launch(self.rt, self._k_crop, (mx, my, planes), out.data, padded.data,
+                       *map(np.int32, (my, mx, py, px, *self.offsets)))
         return out
 
     def embed_from_sensor(self, sensor, out):
         my, mx = self.sensor_shape
         py, px = self.padded_shape
         planes = sensor.shape[0] if sensor.ndim == 3 else 1
-        self._k_embed(self.rt.queue, (px, py, planes), None, out.data, sensor.data,
-                      *map(np.int32, (my, mx, py, px, *self.offsets)))
+        kernels.launch(self.rt, self._k_embed, (px, py, planes), out.data, sensor.data,
+                       *map(np.int32, (my, mx, py, px, *self.offsets)))
         return out
 
     def convolve_device(self, x: Volume, out_plane):

