@@ -15,12 +15,13 @@ def _cmd_devices(args) -> int:
     if not caps:
         print(f"cm2cl: error: {device.NO_DEVICE_HELP}", file=sys.stderr)
         return 3
+    compiles = {c.index: device.compiler_works(d) for c, d in zip(caps, device._all_devices())}
     try:
         chosen = device.get_runtime(args.device).caps.index
     except CM2Error as exc:
-        print(device.format_table(caps))
+        print(device.format_table(caps, None, compiles))
         raise exc
-    print(device.format_table(caps, chosen))
+    print(device.format_table(caps, chosen, compiles))
     print(f"\n* = device cm2cl uses now (CM2CL_DEVICE / PYOPENCL_CTX / --device override the choice)")
     print(f"FFT backends available: {', '.join(fft.available_backends())} "
           f"(auto picks {fft.resolve_backend('auto')})")

@@ -139,6 +139,27 @@ def _from_pyopencl_ctx(spec: str):
         return _match(spec, "PYOPENCL_CTX")
 
 
+_PROBE = "__kernel void probe(__global float *a) { a[get_global_id(0)] = 1.0f; }"
+_PROBES: dict = {}
+
+
+def compiler_works(device) -> tuple[bool, str]:
+    """Whether the device's OpenCL compiler builds a trivial kernel (cached per device), and why not.
+
+    Some installations list a device whose compiler cannot target the host: PyPI's PoCL 3.0
+    (LLVM 14) fails with "unknown target CPU 'generic'" on CPUs its LLVM does not recognise."""
+    cl = _cl()
+    key = device.int_ptr
+    if key not in _PROBES:
+        try:
+            cl.Program(cl.Context([device]), _PROBE).build()
+            _PROBES[key] = (True, "")
+        except cl.Error as exc:
+            lines = [ln.strip() for ln in str(exc).splitlines() if "error" in ln.lower()]
+            _PROBES[key] = (False, (lines[-1] if lines else str(exc).splitlines()[0])[:200])
+    return _PROBES[key]
+
+
 def select_device(spec: str | int | None = None):
     """Return the pyopencl Device to use.
 
@@ -156,7 +177,14 @@ def select_device(spec: str | int | None = None):
     devices = _all_devices()
     if not devices:
         raise DeviceError(NO_DEVICE_HELP)
-    return max(devices, key=lambda d: capabilities(d).score)
+    why = []
+    for d in sorted(devices, key=lambda d: -capabilities(d).score):
+        ok, reason = compiler_works(d)
+        if ok:
+            return d
+        why.append(f"'{d.name.strip()}' ({d.platform.version.strip()[:24]}): {reason}")
+    raise DeviceError("no OpenCL device can compile kernels: " + "; ".join(why) + ". "
+                      "On Debian/Ubuntu `apt-get install pocl-opencl-icd` gives a working CPU device.")
 
 
 class Runtime:
@@ -207,16 +235,19 @@ def get_runtime(device=None) -> Runtime:
     return _RUNTIMES[key]
 
 
-def format_table(caps: list[Capabilities], chosen: int | None = None) -> str:
-    """Plain-text table of devices, as printed by ``cm2cl devices``."""
-    head = ["#", "device", "platform", "type", "fp64", "global mem", "max buffer", "max wg", "CUs"]
+def format_table(caps: list[Capabilities], chosen: int | None = None, compiles=None) -> str:
+    """Plain-text table of devices, as printed by ``cm2cl devices``; ``compiles`` maps a device
+    index to (ok, reason) from :func:`compiler_works`."""
+    head = ["#", "device", "platform", "type", "fp64", "global mem", "max buffer", "max wg", "CUs", "compiles"]
     rows = []
     for c in caps:
         mark = "*" if chosen is not None and c.index == chosen else " "
+        ok = (compiles or {}).get(c.index)
         rows.append([
             f"{mark}{c.index}", c.name, c.platform[:40], c.kind, "yes" if c.fp64 else "no",
             f"{c.global_mem / 2**30:.1f} GiB", f"{c.max_alloc / 2**30:.2f} GiB",
             str(c.max_work_group_size), str(c.compute_units),
+            "?" if ok is None else ("yes" if ok[0] else "NO: " + ok[1][:60]),
         ])
     widths = [max(len(r[i]) for r in [head] + rows) for i in range(len(head))]
     line = lambda r: "  ".join(s.ljust(w) for s, w in zip(r, widths)).rstrip()  # noqa: E731

@@ -84,3 +84,24 @@ def test_float64_refused_without_fp64(rt):
     fake.caps = device.Capabilities(**{**rt.caps.__dict__, "fp64": False})
     with pytest.raises(DeviceError, match="no fp64 support"):
         fake.check_dtype(np.float64)
+
+
+def test_auto_choice_skips_devices_whose_compiler_fails(rt, monkeypatch):
+    monkeypatch.delenv("CM2CL_DEVICE", raising=False)
+    monkeypatch.delenv("PYOPENCL_CTX", raising=False)
+    best = device.select_device()
+    assert device.compiler_works(best)[0]
+    broken = {best.int_ptr}
+    monkeypatch.setattr(device, "compiler_works",
+                        lambda d: (False, "error: unknown target CPU 'generic'") if d.int_ptr in broken else (True, ""))
+    if len(device._all_devices()) > 1:
+        assert device.select_device().int_ptr != best.int_ptr
+    broken.update(d.int_ptr for d in device._all_devices())
+    with pytest.raises(DeviceError, match=r"no OpenCL device can compile kernels: .*unknown target CPU 'generic'.*pocl-opencl-icd"):
+        device.select_device()
+
+
+def test_a_device_whose_compiler_fails_is_reported(rt):
+    for d in device._all_devices():
+        ok, why = device.compiler_works(d)
+        assert ok or "error" in why.lower()
