@@ -97,7 +97,7 @@ class ADMMSolver:
         nf = np.uint64(m.nfreq)
         for first, ((z0, z1), hs) in zip([1] + [0] * len(m.bounds), m.psf_spectra):
             kernels.launch(rt, self.k["spectral_power"], (m.nfreq,), self.hn2.slabs[0].data, hs.data,
-                                     np.int32(z1 - z0), nf, np.int32(first))
+                           np.int32(z1 - z0), nf, np.int32(first))
         hmax = float(self.hn2.slabs[0].get().max())
         self.psf_scale = 1.0 / np.sqrt(hmax) if params.normalize else 1.0
         if params.normalize:
@@ -216,16 +216,16 @@ class ADMMSolver:
                         hp, hn = j > 0, j + 1 < nslab
                         prev = pz_.slabs[j - 1] if hp else pz_.slabs[j]
                         self._grid("tv_residual", z1 - z0, self.g.slabs[j].data,
-                                 px_.slabs[j].data, py_.slabs[j].data, pz_.slabs[j].data, prev.data,
-                                 I(hp), I(prev.shape[0]), I(hn), self.x.slabs[j].data,
-                                 self.eta.slabs[j].data, R(1.0 / mu_u), R(1.0 / tau), aw,
-                                 I(z1 - z0), I(ny), I(nx))
+                                   px_.slabs[j].data, py_.slabs[j].data, pz_.slabs[j].data, prev.data,
+                                   I(hp), I(prev.shape[0]), I(hn), self.x.slabs[j].data,
+                                   self.eta.slabs[j].data, R(1.0 / mu_u), R(1.0 / tau), aw,
+                                   I(z1 - z0), I(ny), I(nx))
                     for j, (z0, z1) in enumerate(bounds):
                         hn = j + 1 < nslab
                         gn = self.g.slabs[j + 1] if hn else self.g.slabs[j]
                         self._grid("tv_dual_step", z1 - z0, px_.slabs[j].data,
-                                 py_.slabs[j].data, pz_.slabs[j].data, self.g.slabs[j].data, gn.data,
-                                 I(hn), step, aw, iso, I(z1 - z0), I(ny), I(nx))
+                                   py_.slabs[j].data, pz_.slabs[j].data, self.g.slabs[j].data, gn.data,
+                                   I(hn), step, aw, iso, I(z1 - z0), I(ny), I(nx))
             for j, (z0, z1) in enumerate(bounds):
                 hp, hn = j > 0, j + 1 < nslab
                 prev = pz_.slabs[j - 1] if hp else pz_.slabs[j]
