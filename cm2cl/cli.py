@@ -22,7 +22,7 @@ def _cmd_devices(args) -> int:
         print(device.format_table(caps, None, compiles))
         raise exc
     print(device.format_table(caps, chosen, compiles))
-    print(f"\n* = device cm2cl uses now (CM2CL_DEVICE / PYOPENCL_CTX / --device override the choice)")
+    print("\n* = device cm2cl uses now (CM2CL_DEVICE / PYOPENCL_CTX / --device override the choice)")
     print(f"FFT backends available: {', '.join(fft.available_backends())} "
           f"(auto picks {fft.resolve_backend('auto')})")
     return 0

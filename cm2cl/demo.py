@@ -9,9 +9,6 @@ truth (PNG), and ``demo.json`` (written last).
 from __future__ import annotations
 
 import json
-import os
-import shutil
-import tempfile
 import time
 from pathlib import Path
 
@@ -60,17 +57,14 @@ def demo(outdir="cm2cl-demo", *, device=None, seed=None, max_iter: int = RECON["
          verbose: bool = True) -> dict:
     """Run the demo; returns its summary (also written to OUTDIR/demo.json)."""
     from . import analysis, reconstruct
-    from .io import write_tiff
+    from .io import StagedOutput, check_output_dir, write_tiff
     from .simulate import load_scene, run as simulate_run, write as simulate_write
 
     say = print if verbose else (lambda *a, **k: None)
     if max_iter < 1:
         raise InputError(f"--iterations: must be >= 1, got {max_iter}")
     out = Path(outdir)
-    if out.exists() and not out.is_dir():
-        raise InputError(f"output '{out}': exists and is not a directory")
-    parent = out.resolve().parent
-    parent.mkdir(parents=True, exist_ok=True)
+    check_output_dir(out)
     t0 = time.perf_counter()
 
     scene = load_scene(SCENE)
@@ -138,11 +132,8 @@ def demo(outdir="cm2cl-demo", *, device=None, seed=None, max_iter: int = RECON["
             f"(plane spacing {dz:.0f} um)")
 
     # outputs: build next to OUTDIR, move in at the end, demo.json last
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=parent))
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(tmp, 0o777 & ~umask)          # mkdtemp makes it private; the result is a normal directory
-    try:
+    with StagedOutput(out) as stage:
+        tmp = stage.dir
         simulate_write(sim, tmp / "simulation")
         write_tiff(tmp / "reconstruction.tif", vol.astype(np.float32), voxel_size_um=sim.voxel_size_um,
                    depths_um=sim.depths_um, extra={"kind": "reconstruction", "scene": scene.name,
@@ -157,22 +148,7 @@ def demo(outdir="cm2cl-demo", *, device=None, seed=None, max_iter: int = RECON["
         summary["seconds"]["total"] = time.perf_counter() - t0
         names = ["simulation", "reconstruction.tif", "reconstruction_log.csv", "mip_reconstruction.png",
                  "mip_ground_truth.png"]
-        text = json.dumps(summary, indent=2)
-        if not out.exists():
-            (tmp / "demo.json").write_text(text)
-            os.replace(tmp, out)
-        else:
-            if (out / "demo.json").exists():
-                (out / "demo.json").unlink()
-            for n in names:
-                if (out / n).is_dir():
-                    shutil.rmtree(out / n)
-                os.replace(tmp / n, out / n)
-            (out / "demo.json.partial").write_text(text)
-            os.replace(out / "demo.json.partial", out / "demo.json")
-    finally:
-        if tmp.exists():
-            shutil.rmtree(tmp, ignore_errors=True)
+        stage.publish(names, "demo.json", json.dumps(summary, indent=2))
     say(f"  total {summary['seconds']['total']:.1f} s; wrote {out}/: simulation/, reconstruction.tif, "
         "mip_reconstruction.png, mip_ground_truth.png, reconstruction_log.csv, demo.json")
     return summary

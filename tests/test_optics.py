@@ -1,6 +1,5 @@
 """Optics model: closed forms of the paper, diffraction PSFs, foci geometry, views, PCC widths."""
 
-import math
 
 import numpy as np
 import pytest

@@ -23,9 +23,6 @@ same result, and adding an effect does not move the objects.
 from __future__ import annotations
 
 import json
-import os
-import shutil
-import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -33,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
+from ..io import StagedOutput, check_output_dir, jsonable
 from . import effects as _effects
 from .objects import Beads, generate
 from .render import (RenderGrid, Sample, available_bytes, estimate_bytes, padded_shape_for, psf_stack,
@@ -255,18 +253,6 @@ def _write_outputs(result: SimulationResult, scene: Scene, tmp: Path) -> dict:
     return files
 
 
-def _output_parent(outdir) -> Path:
-    out = Path(outdir)
-    if out.exists() and not out.is_dir():
-        raise InputError(f"output '{out}': exists and is not a directory")
-    parent = out.resolve().parent
-    try:
-        parent.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise InputError(f"output '{out}': cannot create its parent directory ({exc})") from exc
-    return parent
-
-
 def simulate(scene, outdir, seed: int | None = None, device=None) -> dict:
     """Simulate a scene and write ``measurement.tif``, ``psf.tif``, ``ground_truth.tif`` (TIFF with
     voxel sizes and depths), ``emitters.csv`` (bead scenes) and ``simulation.json`` (the record:
@@ -276,52 +262,17 @@ def simulate(scene, outdir, seed: int | None = None, device=None) -> dict:
     JSON record last, so an interrupted run never leaves output that looks complete.
     Returns the record (as written to simulation.json)."""
     scene = load_scene(scene)
-    _output_parent(outdir)
+    check_output_dir(outdir)  # before the (long) run
     return write(run(scene, seed, device), outdir)
 
 
 def write(result: SimulationResult, outdir) -> dict:
     """Write a :class:`SimulationResult` into ``outdir`` as :func:`simulate` does; returns the record."""
-    scene = result.scene
-    out = Path(outdir)
-    parent = _output_parent(out)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=parent))
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(tmp, 0o777 & ~umask)          # mkdtemp makes it private; the result is a normal directory
-    try:
-        files = _write_outputs(result, scene, tmp)
+    with StagedOutput(outdir) as stage:
+        files = _write_outputs(result, result.scene, stage.dir)
         record = dict(result.record)
         record["files"] = files
         record["cm2cl_version"] = __import__("cm2cl").__version__
-        text = json.dumps(_jsonable(record), indent=2)
-        if not out.exists():
-            (tmp / "simulation.json").write_text(text)
-            os.replace(tmp, out)
-        else:
-            stale = out / "simulation.json"
-            if stale.exists():
-                stale.unlink()           # the directory no longer looks complete while we replace
-            for name in files.values():
-                os.replace(tmp / name, out / name)
-            (out / "simulation.json.partial").write_text(text)
-            os.replace(out / "simulation.json.partial", out / "simulation.json")
-    finally:
-        if tmp.exists():
-            shutil.rmtree(tmp, ignore_errors=True)
+        text = json.dumps(jsonable(record), indent=2)
+        stage.publish(list(files.values()), "simulation.json", text)
     return json.loads(text)
-
-
-def _jsonable(obj):
-    if isinstance(obj, dict):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if hasattr(obj, "__dataclass_fields__"):
-        import dataclasses
-        return _jsonable(dataclasses.asdict(obj))
-    return obj
