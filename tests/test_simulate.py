@@ -457,7 +457,6 @@ def test_missing_scene_files():
 # ---------------------------------------------------------------------------------------------
 
 def test_demo_recovers_the_beads(tmp_path):
-    pytest.importorskip("matplotlib")
     from cm2cl.demo import demo
     s = demo(tmp_path / "demo", max_iter=60, verbose=False)
     assert s["emitters"]["true"] == 12 and s["emitters"]["recall"] >= 0.9
