@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from benchlib import best_time, copy_bandwidth, markdown_table, write_section  # noqa: E402
+from benchlib import best_time, copy_bandwidth, markdown_table, parse_size, write_section  # noqa: E402
 
 from cm2cl import fft, reference  # noqa: E402
 from cm2cl.admm import ADMMSolver  # noqa: E402
@@ -72,7 +72,7 @@ def main(argv=None):
     p = ADMMParams(max_iter=a.iters, tol=0)
     rows = []
     for spec in a.sizes:
-        my, mx, nz = (int(v) for v in spec.split("x"))
+        my, mx, nz = parse_size(spec)
         psf, y = problem(my, mx, nz, rng)
         for backend in fft.available_backends():
             s = ADMMSolver(psf, p, backend=backend)

@@ -15,7 +15,7 @@ import numpy as np
 import scipy.fft as sfft
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from benchlib import best_time, markdown_table, write_section  # noqa: E402
+from benchlib import best_time, markdown_table, parse_size, write_section  # noqa: E402
 
 from cm2cl import fft  # noqa: E402
 from cm2cl.device import get_runtime  # noqa: E402
@@ -49,7 +49,7 @@ def main(argv=None):
     rng = np.random.default_rng(0)
     rows = []
     for spec in a.sizes:
-        my, mx, nz = (int(v) for v in spec.split("x"))
+        my, mx, nz = parse_size(spec)
         psf = rng.random((nz, my, mx)).astype(np.float32)
         for backend in fft.available_backends():
             m = ForwardModel(psf, backend=backend)

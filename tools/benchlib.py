@@ -42,6 +42,12 @@ def copy_bandwidth(rt, nbytes=256 * 2**20) -> float:
     return 2 * n * 4 / t
 
 
+def parse_size(spec: str):
+    """'324x432x16' -> (My, Mx, nz): sensor rows, columns and depth planes."""
+    my, mx, nz = (int(v) for v in spec.split("x"))
+    return my, mx, nz
+
+
 def markdown_table(head, rows) -> str:
     out = ["| " + " | ".join(head) + " |", "|" + "|".join("---" for _ in head) + "|"]
     out += ["| " + " | ".join(str(c) for c in r) + " |" for r in rows]

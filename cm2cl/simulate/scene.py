@@ -198,6 +198,23 @@ class _Checker:
             return [self.vector(f"{key}[{i}]", p, 3) for i, p in enumerate(v)]
         raise AssertionError(kind)
 
+    def named_tables(self, data, section, field, known, what):
+        """Yield (index, key, table, name) for each table of the array ``section`` whose ``field``
+        names one of ``known`` (objects by 'type', effects by 'name')."""
+        items = data.get(section, [])
+        if not isinstance(items, list):
+            self.fail(section, f"expected an array of tables ([[{section}]])")
+        for i, t in enumerate(items):
+            key = f"{section}[{i}]"
+            if not isinstance(t, dict):
+                self.fail(key, f"expected a table, got {t!r}")
+            if field not in t:
+                self.fail(f"{key}.{field}", f"missing (known: {', '.join(known)})")
+            name = t[field]
+            if name not in known:
+                self.fail(f"{key}.{field}", f"unknown {what} {name!r} (known: {', '.join(known)})")
+            yield i, key, t, name
+
     def table(self, key, d, specs, skip=()):
         """Validate a parameter table against specs; returns it with defaults filled."""
         if not isinstance(d, dict):
@@ -309,19 +326,8 @@ def _build(data: dict, source: str) -> Scene:
     output = ck.table("output", data.get("output", {}), _OUTPUT)
 
     # objects
-    objs = data.get("objects", [])
-    if not isinstance(objs, list):
-        ck.fail("objects", "expected an array of tables ([[objects]])")
     objects = []
-    for i, o in enumerate(objs):
-        key = f"objects[{i}]"
-        if not isinstance(o, dict):
-            ck.fail(key, f"expected a table, got {o!r}")
-        if "type" not in o:
-            ck.fail(f"{key}.type", f"missing (known: {', '.join(OBJECTS)})")
-        kind = o["type"]
-        if kind not in OBJECTS:
-            ck.fail(f"{key}.type", f"unknown object {kind!r} (known: {', '.join(OBJECTS)})")
+    for i, key, o, kind in ck.named_tables(data, "objects", "type", OBJECTS, "object"):
         spec = OBJECTS[kind]
         params = ck.table(key, o, spec["params"], skip=("type",))
         group = spec.get("one_of")
@@ -334,21 +340,10 @@ def _build(data: dict, source: str) -> Scene:
         ck.fail("objects", "the scene has no objects")
 
     # effects
-    effs = data.get("effects", [])
-    if not isinstance(effs, list):
-        ck.fail("effects", "expected an array of tables ([[effects]])")
     effects = []
     seen = {}
     last_stage = 0
-    for i, e in enumerate(effs):
-        key = f"effects[{i}]"
-        if not isinstance(e, dict):
-            ck.fail(key, f"expected a table, got {e!r}")
-        if "name" not in e:
-            ck.fail(f"{key}.name", f"missing (known: {', '.join(EFFECTS)})")
-        n = e["name"]
-        if n not in EFFECTS:
-            ck.fail(f"{key}.name", f"unknown effect {n!r} (known: {', '.join(EFFECTS)})")
+    for i, key, e, n in ck.named_tables(data, "effects", "name", EFFECTS, "effect"):
         if n in seen:
             ck.fail(f"{key}.name", f"effect {n!r} named twice (also effects[{seen[n]}])")
         seen[n] = i
