@@ -1,8 +1,17 @@
-"""cm2cl: Computational Miniature Mesoscope reconstruction on any OpenCL device."""
+"""cm2cl: Computational Miniature Mesoscope reconstruction on any OpenCL device.
+
+Packages, in the order data flows: :mod:`.io` (files in, preparation) -> :mod:`.solver` (forward
+model and ADMM, on :mod:`.device`) -> :mod:`.io` (files out) -> :mod:`.analysis`. Beside them:
+:mod:`.optics` (geometry, PSF model), :mod:`.simulate` (scenes -> measurements), :mod:`.cli` (the
+command), :mod:`.reference` (float64 twins for tests). Library code logs to the ``cm2cl`` logger
+and prints nothing.
+"""
+
+import logging
 
 __version__ = "0.1.0"
 
-from .admm import reconstruct  # noqa: E402,F401
-from .errors import CM2Error, DeviceError, InputError, KernelBuildError  # noqa: F401
-from .forward import ForwardModel  # noqa: E402,F401
-from .result import Reconstruction  # noqa: E402,F401
+logging.getLogger("cm2cl").addHandler(logging.NullHandler())
+
+from .errors import CM2Error, DeviceError, InputError, KernelBuildError  # noqa: E402,F401
+from .solver import ForwardModel, Reconstruction, reconstruct  # noqa: E402,F401

@@ -3,7 +3,8 @@
 import numpy as np
 import pytest
 
-from cm2cl import device, fft
+from cm2cl import device
+from cm2cl.device import fft
 from cm2cl.errors import DeviceError
 
 

@@ -7,9 +7,9 @@ import pytest
 from scipy.ndimage import gaussian_filter
 
 from cm2cl import reference as ref
-from cm2cl.admm import ADMMSolver, reconstruct
+from cm2cl.solver.admm import ADMMSolver, reconstruct
 from cm2cl.errors import DeviceError
-from cm2cl.params import ADMMParams
+from cm2cl.solver.params import ADMMParams
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "diffusercam-2d"
 
@@ -121,10 +121,10 @@ def test_scale_invariance(rt):
 def _diffusercam():
     import tifffile
 
-    from cm2cl.psf import prepare
+    from cm2cl.io.prepare import prepare
     psf_raw = tifffile.imread(DATA / "psf_sample.tif")
     meas_raw = tifffile.imread(DATA / "rawdata_hand_sample.tif")
-    from cm2cl.psf import estimate_offset
+    from cm2cl.io.prepare import estimate_offset
     off = estimate_offset(psf_raw)
     return prepare(psf_raw, offset=off, bin_factor=4), prepare(meas_raw, offset=off, bin_factor=4)
 
@@ -188,7 +188,7 @@ def test_both_reduction_layouts_match_the_reference(rt, contiguous):
     kw = dict(l1=1e-3, tv=1e-3, max_iter=12, tol=0)
     s = ADMMSolver(psf.astype(np.float32), ADMMParams(**kw), padded_shape=(64, 80), max_slab_planes=3)
     s.contiguous = np.int32(contiguous)
-    r1 = s.run(y.astype(np.float32))
+    r1 = s.solve(y.astype(np.float32))
     r0 = ref.admm(y, psf, padded_shape=(64, 80), **kw)
     np.testing.assert_allclose(r1.log_array("objective"), r0.log_array("objective"), rtol=1e-5)
     np.testing.assert_allclose(r1.log_array("primal"), r0.log_array("primal"), rtol=1e-4)

@@ -2,6 +2,7 @@ import pyopencl as cl
 import pytest
 
 from cm2cl import device
+from cm2cl.device import runtime
 from cm2cl.cli import main
 from cm2cl.errors import DeviceError
 
@@ -53,7 +54,7 @@ def test_index_out_of_range_is_a_clear_error(rt, monkeypatch):
 
 
 def test_no_device_message_says_how_to_get_pocl(monkeypatch, capsys):
-    monkeypatch.setattr(device, "_all_devices", lambda: ())
+    monkeypatch.setattr(runtime, "_all_devices", lambda: ())
     monkeypatch.delenv("CM2CL_DEVICE", raising=False)
     monkeypatch.delenv("PYOPENCL_CTX", raising=False)
     with pytest.raises(DeviceError, match="PoCL"):
@@ -92,16 +93,45 @@ def test_auto_choice_skips_devices_whose_compiler_fails(rt, monkeypatch):
     best = device.select_device()
     assert device.compiler_works(best)[0]
     broken = {best.int_ptr}
-    monkeypatch.setattr(device, "compiler_works",
+    monkeypatch.setattr(runtime, "compiler_works",
                         lambda d: (False, "error: unknown target CPU 'generic'") if d.int_ptr in broken else (True, ""))
-    if len(device._all_devices()) > 1:
+    if len(runtime._all_devices()) > 1:
         assert device.select_device().int_ptr != best.int_ptr
-    broken.update(d.int_ptr for d in device._all_devices())
+    broken.update(d.int_ptr for d in runtime._all_devices())
     with pytest.raises(DeviceError, match=r"no OpenCL device can compile kernels: .*unknown target CPU 'generic'.*pocl-opencl-icd"):
         device.select_device()
 
 
-def test_a_device_whose_compiler_fails_is_reported(rt):
-    for d in device._all_devices():
-        ok, why = device.compiler_works(d)
-        assert ok or "error" in why.lower()
+def test_a_device_whose_compiler_fails_is_reported(rt, monkeypatch, capsys):
+    """A device whose compiler cannot build the probe kernel is reported with the compiler's error
+    line, both by compiler_works and in the `cm2cl devices` table (PyPI's PoCL 3.0 on CPUs that its
+    LLVM 14 does not know fails like this)."""
+    log = "Build on <pyopencl.Device 'x'>:\n\nerror: unknown target CPU 'generic'\n(options: -I ...)"
+
+    class BrokenProgram:
+        def __init__(self, *a, **k):
+            pass
+
+        def build(self, *a, **k):
+            raise cl.RuntimeError(f"clBuildProgram failed: BUILD_PROGRAM_FAILURE - {log}")
+
+    monkeypatch.setattr(runtime, "_PROBES", {})
+    monkeypatch.setattr(cl, "Program", BrokenProgram)
+    ok, why = device.compiler_works(runtime._all_devices()[0])
+    assert not ok and why == "error: unknown target CPU 'generic'"
+    monkeypatch.delenv("CM2CL_DEVICE", raising=False)
+    monkeypatch.delenv("PYOPENCL_CTX", raising=False)
+    assert main(["devices"]) == 2      # no device can compile: the table, then a one-line error
+    cap = capsys.readouterr()
+    assert "NO: error: unknown target CPU 'generic'" in cap.out
+    assert "no OpenCL device can compile kernels" in cap.err and "Traceback" not in cap.err
+
+
+def test_devices_table_names_the_implementation(rt, capsys):
+    """`cm2cl devices` says which OpenCL implementation (and for PoCL which install) each device is."""
+    assert main(["devices"]) == 0
+    out = capsys.readouterr().out
+    assert rt.caps.implementation[:40] in out
+    assert runtime.implementation_of("Portable Computing Language", "OpenCL 3.0 PoCL 3.1+debian  Linux", "3.1") \
+        == "PoCL 3.1+debian (system package)"
+    assert runtime.implementation_of("NVIDIA CUDA", "OpenCL 3.0 CUDA 12.4.131", "550.54") == "NVIDIA CUDA (driver 550.54)"

@@ -2,7 +2,7 @@ import numpy as np
 import pyopencl.array as cla
 import pytest
 
-from cm2cl import fft
+from cm2cl.device import fft
 
 SHAPES = [(64, 128), (48, 60), (42, 70), (45, 63), (31, 17)]  # pow2, smooth, 7-smooth, odd, prime
 
@@ -49,7 +49,7 @@ def test_unknown_backend_is_a_clear_error():
 
 from hypothesis import given, settings, strategies as st  # noqa: E402
 
-from cm2cl.volume import slab_bounds  # noqa: E402
+from cm2cl.device.volume import slab_bounds  # noqa: E402
 
 
 @settings(max_examples=200, deadline=None)

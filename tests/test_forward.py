@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from cm2cl import reference as ref
-from cm2cl.forward import ForwardModel, centered_psf
+from cm2cl.solver.forward import ForwardModel, centered_psf
 from conftest import rtol_for
 
 # (nz, My, Mx): single plane, odd, non-power-of-two, rectangular, more planes than one slab

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from cm2cl import kernels
+from cm2cl.device import kernels
 from cm2cl.errors import KernelBuildError
 
 
@@ -18,15 +18,53 @@ def test_build_failure_names_file_and_shows_log(rt, monkeypatch):
     assert "kernels/broken.cl" in str(err.value) and "undefined_name" in str(err.value)
 
 
-def test_no_fast_math(rt):
-    opts = kernels.build_options(np.float32) + kernels.build_options(np.float64)
-    assert not any("fast" in o or "unsafe" in o for o in opts)
+def test_no_fast_math(rt, monkeypatch):
+    """Programs are built without fast-math: the options handed to the compiler carry none, and a
+    kernel built through the loader still sees NaN (finite-math-only would fold isnan to false)."""
+    import pyopencl as cl
+
+    seen = []
+    real_build = cl.Program.build
+
+    def spy(self, options=None, *a, **k):
+        seen.append(list(options or []))
+        return real_build(self, options, *a, **k)
+
+    monkeypatch.setattr(cl.Program, "build", spy)
+    monkeypatch.setitem(kernels._SOURCES, "nan_probe.cl",
+                        "__kernel void f(__global const real_t *a, __global int *o) {"
+                        " const size_t i = get_global_id(0); o[i] = isnan(a[i]) ? 1 : (isinf(a[i]) ? 2 : 0); }")
+    for dt in (np.float32,) + ((np.float64,) if rt.caps.fp64 else ()):
+        k = kernels.kernel(rt, "nan_probe.cl", "f", dt)
+        a = np.array([1.0, np.nan, np.inf, -np.inf, 0.0], dt)
+        import pyopencl.array as cla
+        da, do = cla.to_device(rt.queue, a), cla.zeros(rt.queue, a.size, np.int32)
+        k(rt.queue, (a.size,), None, da.data, do.data)
+        assert do.get().tolist() == [0, 1, 2, 2, 0], dt
+    assert seen and not any("fast" in o or "unsafe" in o or "finite" in o for opts in seen for o in opts)
 
 
 def test_work_group_size_is_queried_per_kernel(rt):
+    """The local size comes from each kernel's own limit on this device: the largest power of two
+    within it (and within the cap)."""
+    import pyopencl as cl
+
+    class Fake:
+        def __init__(self, limit):
+            self.limit, self.asked = limit, []
+
+        def get_work_group_info(self, what, dev):
+            self.asked.append((what, dev))
+            return self.limit
+
+    for limit, cap, want in ((48, 256, 32), (1, 256, 1), (1024, 64, 64), (200, 256, 128)):
+        f = Fake(limit)
+        assert kernels.work_group_size(rt, f, cap) == min(want, rt.caps.max_work_group_size)
+        assert f.asked == [(cl.kernel_work_group_info.WORK_GROUP_SIZE, rt.device)]
     k = kernels.kernel(rt, "fft_conv.cl", "spectral_mac", np.float32)
-    n = kernels.work_group_size(rt, k)
-    assert n >= 1 and n & (n - 1) == 0 and n <= rt.caps.max_work_group_size
+    lim = k.get_work_group_info(cl.kernel_work_group_info.WORK_GROUP_SIZE, rt.device)
+    n = kernels.work_group_size(rt, k, 1 << 20)
+    assert n & (n - 1) == 0 and n <= lim < 2 * n or n == rt.caps.max_work_group_size
 
 
 def test_kernel_sources_ship_with_the_package():

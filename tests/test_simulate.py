@@ -10,6 +10,7 @@ import pytest
 from scipy import ndimage
 
 import cm2cl.simulate as sim
+from cm2cl.simulate import pipeline
 from cm2cl import reference
 from cm2cl.analysis import local_sbr, signal_mask
 from cm2cl.errors import InputError
@@ -17,7 +18,7 @@ from cm2cl.io import read_tiff, write_tiff
 from cm2cl.optics import CM2Optics
 from cm2cl.simulate import effects as fx
 from cm2cl.simulate import objects as ob
-from cm2cl.simulate.cli import register
+from cm2cl.cli.simulate import register
 
 
 def scene(objects, effects=(), *, size=(2.0, 2.0, 0.5), dz=250.0, binning=8, render=None, **extra):
@@ -66,9 +67,9 @@ def test_builtin_scenes_are_valid():
 
 
 def test_demo_scene_is_deterministic_per_seed():
-    a = sim.run("demo_beads", seed=11)
-    b = sim.run("demo_beads", seed=11)
-    c = sim.run("demo_beads", seed=12)
+    a = sim.simulate_scene("demo_beads", seed=11)
+    b = sim.simulate_scene("demo_beads", seed=11)
+    c = sim.simulate_scene("demo_beads", seed=12)
     assert a.measurement.dtype == np.uint16             # 8-bit pixels summed over 8 x 8 binning
     assert np.array_equal(a.measurement, b.measurement)
     assert np.array_equal(a.ground_truth, b.ground_truth)
@@ -88,7 +89,7 @@ def test_shift_invariant_path_is_the_forward_operator():
     truth with the saved PSF: by the float64 reference and by the device ForwardModel."""
     beads = {"type": "beads", "diameter_um": 30.0, "count": 10, "brightness": 1e4,
              "region_size_mm": [1.5, 1.5]}
-    r = sim.run(scene([beads], size=(2.0, 2.0, 0.5), dz=125.0), seed=5)
+    r = sim.simulate_scene(scene([beads], size=(2.0, 2.0, 0.5), dz=125.0), seed=5)
     assert r.record["render"]["path"] == "shift_invariant"
     x, padded = padded_volume(r)
     assert x.sum() == pytest.approx(10 * 1e4, rel=1e-5)          # nothing outside the window
@@ -96,11 +97,11 @@ def test_shift_invariant_path_is_the_forward_operator():
     rel = np.linalg.norm(r.expected - y_ref) / np.linalg.norm(y_ref)
     assert rel < 1e-5
     if r.record["render"]["backend"] == "opencl":
-        from cm2cl.forward import ForwardModel
+        from cm2cl.solver.forward import ForwardModel
         y_dev = ForwardModel(r.psf, padded_shape=padded).forward(x.astype(np.float32))
         assert np.linalg.norm(r.expected - y_dev) / np.linalg.norm(y_ref) < 1e-6
     # and the numpy backend gives the same image
-    r2 = sim.run(scene([beads], size=(2.0, 2.0, 0.5), dz=125.0, render={"backend": "numpy"}), seed=5)
+    r2 = sim.simulate_scene(scene([beads], size=(2.0, 2.0, 0.5), dz=125.0, render={"backend": "numpy"}), seed=5)
     assert r2.record["render"]["backend"] == "numpy"
     assert np.linalg.norm(r2.expected - y_ref) / np.linalg.norm(y_ref) < 1e-12
 
@@ -114,8 +115,8 @@ def test_per_emitter_path_agrees_with_the_shift_invariant_path():
         m = float(o.magnification(z))
         pos.append([-kc * 17.6 / m, -kr * 17.6 / m, z])
     objs = [{"type": "beads", "diameter_um": 0.5, "positions_um": pos, "brightness": 1e4}]
-    a = sim.run(scene(objs), seed=0)
-    b = sim.run(scene(objs, render={"mode": "emitters"}), seed=0)
+    a = sim.simulate_scene(scene(objs), seed=0)
+    b = sim.simulate_scene(scene(objs, render={"mode": "emitters"}), seed=0)
     assert a.record["render"]["path"] == "shift_invariant" and b.record["render"]["path"] == "emitters"
     assert np.abs(a.expected - b.expected).max() < 1e-3 * a.expected.max()
 
@@ -124,8 +125,8 @@ def test_grid_path_reduces_to_the_operator_where_nothing_varies():
     """Truncation named but the object sits where no view is cut: the local-convolution grid
     (bilinear partition of unity) reproduces the shift-invariant image."""
     tgt = {"type": "target", "groups": [3, 4], "tilt_deg": 20.0, "brightness_per_um2": 1.0}
-    a = sim.run(scene([tgt], dz=125.0), seed=0)
-    b = sim.run(scene([tgt], [{"name": "truncation"}], dz=125.0, render={"grid_mm": 1.0}), seed=0)
+    a = sim.simulate_scene(scene([tgt], dz=125.0), seed=0)
+    b = sim.simulate_scene(scene([tgt], [{"name": "truncation"}], dz=125.0, render={"grid_mm": 1.0}), seed=0)
     assert b.record["render"]["path"] == "grid" and b.record["render"]["kernels_used"] > 4
     assert np.linalg.norm(a.expected - b.expected) / np.linalg.norm(a.expected) < 1e-5
 
@@ -169,15 +170,15 @@ def test_background_lowers_sbr_most_where_views_overlap():
              "region_size_mm": [4.0, 4.0]}
     # a sample wider than 2 l/l0 D = 6.8 mm, so that all nine views overlap at the centre
     base = scene([beads], size=(10.0, 8.0, 0.5), dz=250.0)
-    clean = sim.run(base, seed=2).expected
+    clean = sim.simulate_scene(base, seed=2).expected
     mask = signal_mask(clean, 0.2, patch_px=24)
     sbrs = []
     for f in (0.25, 1.0, 4.0):
-        img = sim.run({**base, "effects": [{"name": "background", "fraction": f}]}, seed=2).expected
+        img = sim.simulate_scene({**base, "effects": [{"name": "background", "fraction": f}]}, seed=2).expected
         sbrs.append(local_sbr(img, mask, 24)[1])
     assert sbrs[0] > sbrs[1] > sbrs[2] > 1.0
     # the background alone: the central field sees all 9 overlapping views, the outer field fewer
-    bg = sim.run({**base, "effects": [{"name": "background", "fraction": 4.0}]}, seed=2).expected - clean
+    bg = sim.simulate_scene({**base, "effects": [{"name": "background", "fraction": 4.0}]}, seed=2).expected - clean
     cy, cx = 121, 162
     d = int(round(CM2Optics(binning=8).foci_separation_px(0)))
     assert bg[cy, cx] > 1.3 * bg[cy, cx + int(1.5 * d)]
@@ -188,10 +189,10 @@ def test_truncation_drops_views_at_the_field_edge():
     sensor; the ~21 deg angular cutoff removes more far off axis."""
     cases = [((0, 0), 9, 9), ((0, 2500), 6, 6), ((4000, 2500), 4, 4), ((5000, 0), 6, 3)]
     for (x, y), n_plain, n_trunc in cases:
-        plain = sim.run(scene([bead(x, y)], size=(12.0, 10.0, 0.0)), seed=0)
+        plain = sim.simulate_scene(scene([bead(x, y)], size=(12.0, 10.0, 0.0)), seed=0)
         assert count_foci(plain.expected) == n_plain, (x, y)
         for mode in ("emitters", "grid"):
-            cut = sim.run(scene([bead(x, y)], [{"name": "truncation"}], size=(12.0, 10.0, 0.0),
+            cut = sim.simulate_scene(scene([bead(x, y)], [{"name": "truncation"}], size=(12.0, 10.0, 0.0),
                                 render={"mode": mode}), seed=0)
             assert cut.record["render"]["path"] == mode
             assert count_foci(cut.expected) == n_trunc, (x, y, mode)
@@ -204,10 +205,10 @@ def test_scattering_attenuates_ballistic_light_with_depth():
     ratios = []
     for z in (-250.0, 0.0, 250.0, 500.0):
         base = scene([bead(0, 0, z)], size=(2.0, 2.0, 1.0), dz=250.0)
-        clear = sim.run(base, seed=0).expected
-        no_halo = sim.run({**base, "effects": [{"name": "scattering", "ls_um": ls, "halo_fraction": 0.0}]},
+        clear = sim.simulate_scene(base, seed=0).expected
+        no_halo = sim.simulate_scene({**base, "effects": [{"name": "scattering", "ls_um": ls, "halo_fraction": 0.0}]},
                           seed=0).expected
-        halo = sim.run({**base, "effects": [{"name": "scattering", "ls_um": ls}]}, seed=0).expected
+        halo = sim.simulate_scene({**base, "effects": [{"name": "scattering", "ls_um": ls}]}, seed=0).expected
         e = math.exp(-(z - top) / ls)
         assert no_halo.sum() / clear.sum() == pytest.approx(e, rel=1e-4)
         assert halo.sum() / clear.sum() == pytest.approx(1.0, abs=0.02)       # scattered, not lost
@@ -218,8 +219,8 @@ def test_scattering_attenuates_ballistic_light_with_depth():
 
 def test_vignetting_follows_cos4():
     base = scene([bead(3000, 0, 0)], size=(8.0, 2.0, 0.0))
-    plain = sim.run(base, seed=0).expected
-    vig = sim.run({**base, "effects": [{"name": "vignetting"}]}, seed=0).expected
+    plain = sim.simulate_scene(base, seed=0).expected
+    vig = sim.simulate_scene({**base, "effects": [{"name": "vignetting"}]}, seed=0).expected
     assert vig.sum() / plain.sum() == pytest.approx(math.cos(math.atan(3.0 / 12.0)) ** 4, rel=1e-3)
 
 
@@ -227,8 +228,8 @@ def test_aberration_blurs_off_axis_views():
     for x, lo, hi in ((0.0, 0.9, 1.01), (3500.0, 0.0, 0.7)):
         base = scene([bead(x, 0, 0)], size=(8.0, 2.0, 0.0), binning=4)
         base["optics"]["sensor_shape"] = [700, 900]      # wider than the chip: keep every view
-        plain = sim.run(base, seed=0).expected
-        ab = sim.run({**base, "effects": [{"name": "aberration"}]}, seed=0)
+        plain = sim.simulate_scene(base, seed=0).expected
+        ab = sim.simulate_scene({**base, "effects": [{"name": "aberration"}]}, seed=0)
         assert ab.record["render"]["path"] == "emitters"
         assert ab.expected.sum() == pytest.approx(plain.sum(), rel=0.01)
         assert lo < ab.expected.max() / plain.max() < hi, x
@@ -237,32 +238,32 @@ def test_aberration_blurs_off_axis_views():
 def test_unnamed_effects_never_run(monkeypatch):
     def boom(*a, **k):
         raise AssertionError("an effect that the scene did not name was run")
-    real = {"truncation": fx.truncation, "render_emitters": sim.render_emitters}
+    real = {"truncation": fx.truncation, "render_emitters": pipeline.render_emitters}
     for name in fx.EFFECTS:
         monkeypatch.setattr(fx, name, boom)
-    monkeypatch.setattr(sim, "render_grid", boom)
-    monkeypatch.setattr(sim, "render_emitters", boom)
-    r = sim.run(scene([bead()]), seed=0)
+    monkeypatch.setattr(pipeline, "render_grid", boom)
+    monkeypatch.setattr(pipeline, "render_emitters", boom)
+    r = sim.simulate_scene(scene([bead()]), seed=0)
     assert r.record["effects_applied"] == [] and r.measurement.dtype == np.float32
     assert sorted(r.record["effects_not_named"]) == sorted(fx.EFFECTS)
     # naming one effect runs that one only
     monkeypatch.setattr(fx, "noise", lambda img, optics, rng, **p: (img.astype(np.float32) + 1.0, {"ran": True}))
-    r = sim.run(scene([bead()], [{"name": "noise"}]), seed=0)
+    r = sim.simulate_scene(scene([bead()], [{"name": "noise"}]), seed=0)
     assert [e["name"] for e in r.record["effects_applied"]] == ["noise"]
     assert r.record["effects_applied"][0]["info"] == {"ran": True}
     # shift-variant effects take a shift-variant path, never the fast one
     monkeypatch.setattr(fx, "truncation", real["truncation"])
-    monkeypatch.setattr(sim, "render_emitters", real["render_emitters"])
-    monkeypatch.setattr(sim, "render_shift_invariant", boom)
-    r = sim.run(scene([bead()], [{"name": "truncation"}]), seed=0)
+    monkeypatch.setattr(pipeline, "render_emitters", real["render_emitters"])
+    monkeypatch.setattr(pipeline, "render_shift_invariant", boom)
+    r = sim.simulate_scene(scene([bead()], [{"name": "truncation"}]), seed=0)
     assert r.record["render"]["path"] == "emitters"
     assert [e["name"] for e in r.record["effects_applied"]] == ["truncation"]
 
 
 def test_z_oversampling_keeps_energy_and_ground_truth_planes():
     beads = {"type": "beads", "diameter_um": 10.0, "count": 6, "brightness": 1e4, "region_size_mm": [1.0, 1.0]}
-    a = sim.run(scene([beads]), seed=3)
-    b = sim.run(scene([beads], render={"z_oversample": 3}), seed=3)
+    a = sim.simulate_scene(scene([beads]), seed=3)
+    b = sim.simulate_scene(scene([beads], render={"z_oversample": 3}), seed=3)
     assert b.ground_truth.shape == a.ground_truth.shape
     assert b.ground_truth.sum() == pytest.approx(a.ground_truth.sum(), rel=1e-5)
     assert b.expected.sum() == pytest.approx(a.expected.sum(), rel=1e-3)
@@ -323,14 +324,14 @@ def test_simulate_writes_tiffs_with_geometry_and_a_record(tmp_path):
     assert [e["name"] for e in saved["effects_applied"]] == ["noise"]
     em = np.loadtxt(out / "emitters.csv", delimiter=",", skiprows=1)
     assert em.shape == (12, 8)
-    assert np.array_equal(meas, sim.run("demo_beads", seed=3).measurement)
+    assert np.array_equal(meas, sim.simulate_scene("demo_beads", seed=3).measurement)
     # a second run into the same directory replaces it
     sim.simulate("demo_beads", out, seed=4)
     assert json.loads((out / "simulation.json").read_text())["seed"] == 4
 
 
 def test_interrupted_simulation_leaves_no_complete_output(tmp_path, monkeypatch):
-    import cm2cl.io as io
+    import cm2cl.io.tiff as io
     calls = []
 
     def failing(*a, **k):
@@ -439,7 +440,7 @@ def test_bad_scenes_raise_one_line_input_errors(tmp_path, text, message):
     p = tmp_path / "x.toml"
     p.write_text(text)
     with pytest.raises(InputError) as info:
-        sim.run(p, seed=0)
+        sim.simulate_scene(p, seed=0)
     msg = str(info.value)
     assert message in msg and "\n" not in msg
     assert isinstance(info.value, ValueError)
@@ -457,7 +458,7 @@ def test_missing_scene_files():
 # ---------------------------------------------------------------------------------------------
 
 def test_demo_recovers_the_beads(tmp_path):
-    from cm2cl.demo import demo
+    from cm2cl.cli.demo import demo
     s = demo(tmp_path / "demo", max_iter=60, verbose=False)
     assert s["emitters"]["true"] == 12 and s["emitters"]["recall"] >= 0.9
     # lateral errors well under a voxel (42 um), axial well under a plane (250 um)

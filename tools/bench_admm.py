@@ -19,10 +19,11 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from benchlib import best_time, copy_bandwidth, markdown_table, parse_size, write_section  # noqa: E402
 
-from cm2cl import fft, reference  # noqa: E402
+from cm2cl import reference
+from cm2cl.device import fft  # noqa: E402
 from cm2cl.admm import ADMMSolver  # noqa: E402
 from cm2cl.device import get_runtime  # noqa: E402
-from cm2cl.params import ADMMParams  # noqa: E402
+from cm2cl.solver.params import ADMMParams  # noqa: E402
 
 
 def bytes_per_iteration(nz, P, spec_plane, tv_iters, item=4):
@@ -76,8 +77,8 @@ def main(argv=None):
         psf, y = problem(my, mx, nz, rng)
         for backend in fft.available_backends():
             s = ADMMSolver(psf, p, backend=backend)
-            s.run(y)  # warm-up: kernel builds, FFT plans
-            dev = per_iteration(s.run(y))
+            s.solve(y)  # warm-up: kernel builds, FFT plans
+            dev = per_iteration(s.solve(y))
             npy = per_iteration(reference.admm(y, psf, p, padded_shape=s.P, dtype=np.float32, workers=-1))
             fft_t = best_time(lambda: fft_pass(s), 3, sync=rt.queue.finish)
             V = nz * s.P[0] * s.P[1] * 4

@@ -17,10 +17,10 @@ import scipy.fft as sfft
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from benchlib import best_time, markdown_table, parse_size, write_section  # noqa: E402
 
-from cm2cl import fft  # noqa: E402
+from cm2cl.device import fft  # noqa: E402
 from cm2cl.device import get_runtime  # noqa: E402
-from cm2cl.forward import ForwardModel, centered_psf  # noqa: E402
-from cm2cl.volume import Volume  # noqa: E402
+from cm2cl.solver.forward import ForwardModel, centered_psf  # noqa: E402
+from cm2cl.device.volume import Volume  # noqa: E402
 
 
 def numpy_ops(psf, P):

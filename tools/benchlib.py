@@ -31,7 +31,7 @@ def copy_bandwidth(rt, nbytes=256 * 2**20) -> float:
     """Bytes per second of a device copy kernel (read + write counted), float32."""
     import pyopencl.array as cla
 
-    from cm2cl import kernels
+    from cm2cl.device import kernels
 
     n = nbytes // 4
     a = cla.zeros(rt.queue, n, np.float32)

@@ -2,10 +2,10 @@
 
 Three paths, chosen by the pipeline from the effects a scene names:
 
-* :func:`render_shift_invariant` -- the slice-wise shift-invariant model of the paper (Eq. 3), the
-  *same operator* as cm2cl's forward model: y = C sum_i h_i (*) x_i with the on-axis PSF stack,
-  the object on the padded grid, run by :class:`cm2cl.forward.ForwardModel` on the OpenCL device
-  (or :func:`cm2cl.reference.forward` in float64 numpy). One FFT convolution per plane.
+* :func:`render_shift_invariant` -- the slice-wise shift-invariant model of the paper (Eq. 3):
+  y = C sum_i h_i (*) x_i with the on-axis PSF stack, the object on the padded grid, run by
+  :class:`cm2cl.solver.ForwardModel` on the OpenCL device or by this module's own float64
+  real-FFT convolution (:func:`convolve_numpy`). One FFT convolution per plane.
 * :func:`render_grid` -- shift-variant, for any object: PSFs computed on a lateral grid of field
   points (with truncation / aberrations), each re-centred to the on-axis foci positions, and blended
   with bilinear weights (local convolution model, Nagy & O'Leary): y = C sum_i sum_g k_ig (*) (w_g x_i).
@@ -28,8 +28,8 @@ from ..errors import InputError
 from ..optics import CM2Optics, array_psf, axial_psf_stack
 from .objects import Beads, Box, PointCloud, bead_subpoints
 
-__all__ = ["RenderGrid", "Sample", "padded_shape_for", "estimate_bytes", "available_bytes",
-           "resolve_backend", "forward", "render_shift_invariant", "render_grid", "render_emitters"]
+__all__ = ["RenderGrid", "Sample", "padded_shape_for", "estimate_bytes", "render_backend", "forward",
+           "convolve_numpy", "render_shift_invariant", "render_grid", "render_emitters", "render_psf_stack"]
 
 
 # --------------------------------------------------------------------------------------------
@@ -175,12 +175,15 @@ def rasterise(grid: RenderGrid, objects, dtype=np.float32):
 # --------------------------------------------------------------------------------------------
 
 def padded_shape_for(sensor_shape, backend: str) -> tuple:
-    """The forward model's padded grid (>= 2M - 1) for this backend's FFT."""
-    from .. import forward as fwd
+    """The object grid: >= 2M - 1 (no wrap-around into the sensor window), on a size the renderer's
+    FFT is fast on (the device FFT backend's, or scipy's for the numpy path)."""
+    need = tuple(2 * int(m) - 1 for m in sensor_shape)
     if backend == "opencl":
-        return tuple(fwd.choose_padded_shape(sensor_shape, "auto"))
+        from ..device import fft
+        b = fft.resolve_backend("auto")
+        return tuple(fft.good_size(n, b) for n in need)
     from scipy import fft as sfft
-    return tuple(sfft.next_fast_len(n) for n in fwd.min_padded_shape(sensor_shape))
+    return tuple(sfft.next_fast_len(n, real=True) for n in need)
 
 
 def estimate_bytes(n_planes: int, padded_shape, sensor_shape) -> int:
@@ -189,21 +192,10 @@ def estimate_bytes(n_planes: int, padded_shape, sensor_shape) -> int:
     return int(6 * 4 * n_planes * padded_shape[0] * padded_shape[1] + 8 * 4 * sensor_shape[0] * sensor_shape[1])
 
 
-def available_bytes() -> int:
-    """MemAvailable from /proc/meminfo (Linux), else a conservative 4 GiB."""
-    try:
-        with open("/proc/meminfo") as f:
-            for line in f:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    return 4 << 30
-
-
-def resolve_backend(backend: str, device=None) -> str:
-    """'opencl', 'numpy', or 'auto' = opencl when any OpenCL device exists, else numpy (the record
-    says which). A requested device (argument or CM2CL_DEVICE) that cannot be had is an error."""
+def render_backend(backend: str, device=None) -> str:
+    """The renderer: 'opencl', 'numpy', or 'auto' = opencl when any OpenCL device exists, else numpy
+    (the record says which). A requested device (argument or CM2CL_DEVICE) that cannot be had is an
+    error, not a fallback."""
     if backend in ("opencl", "numpy"):
         return backend
     if backend != "auto":
@@ -216,18 +208,35 @@ def resolve_backend(backend: str, device=None) -> str:
         present = False
     if not present and device is None:
         return "numpy"
-    get_runtime(device)            # a bad CM2CL_DEVICE / --device is an error, not a fallback
+    get_runtime(device)
     return "opencl"
 
 
+def convolve_numpy(psf, x, padded_shape) -> np.ndarray:
+    """The simulator's own float64 image formation: C sum_i h_i (*) x_i by real FFTs on the padded
+    grid. The PSF's axis pixel (My//2, Mx//2) maps an object voxel onto the same sensor-window pixel;
+    the sensor window is centred on the padded grid."""
+    from scipy import fft as sfft
+    psf = np.asarray(psf, np.float64)
+    nz, my, mx = psf.shape
+    py, px = padded_shape
+    # kernel with its axis tap at index (0, 0): place, then rotate by the axis position
+    k = np.zeros((nz, py, px))
+    k[:, :my, :mx] = psf
+    k = np.roll(k, (-(my // 2), -(mx // 2)), axis=(1, 2))
+    spec = sfft.rfft2(k, workers=-1) * sfft.rfft2(np.asarray(x, np.float64), s=(py, px), workers=-1)
+    image = sfft.irfft2(spec.sum(axis=0), s=(py, px), workers=-1)
+    oy, ox = (py - my) // 2, (px - mx) // 2
+    return image[oy:oy + my, ox:ox + mx]
+
+
 def forward(psf, x, padded_shape, backend: str, device=None) -> np.ndarray:
-    """y = C sum_i h_i (*) x_i: the project's forward operator (device or float64 reference)."""
+    """y = C sum_i h_i (*) x_i on the OpenCL device (float32) or in numpy (float64)."""
     if backend == "opencl":
-        from ..forward import ForwardModel
+        from ..solver.forward import ForwardModel
         model = ForwardModel(np.ascontiguousarray(psf, np.float32), padded_shape=padded_shape, device=device)
         return np.asarray(model.forward(np.ascontiguousarray(x, np.float32)), np.float64)
-    from .. import reference
-    return reference.forward(psf, x, padded_shape)
+    return convolve_numpy(psf, x, padded_shape)
 
 
 # --------------------------------------------------------------------------------------------
@@ -321,6 +330,6 @@ def render_emitters(beads: Beads, optics: CM2Optics, psf_kw: dict, halo=None) ->
     return image
 
 
-def psf_stack(optics: CM2Optics, depths_um, psf_kw: dict) -> np.ndarray:
+def render_psf_stack(optics: CM2Optics, depths_um, psf_kw: dict) -> np.ndarray:
     """On-axis PSF stack at ``depths_um`` with the optics-stage effects (what a calibration measures)."""
     return axial_psf_stack(optics, depths_um, **psf_kw)

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import KernelBuildError
+from ..errors import KernelBuildError
 
 _SOURCES: dict[str, str] = {}
 
@@ -24,7 +24,7 @@ def kernel_dir():
     try:
         return resources.files("cm2cl.kernel_src")
     except ModuleNotFoundError:
-        return Path(__file__).resolve().parent.parent / "kernels"
+        return Path(__file__).resolve().parents[2] / "kernels"
 
 
 def source(name: str) -> str:
@@ -52,35 +52,36 @@ def build_options(dtype, defines: dict | None = None) -> list[str]:
 
 
 def program(rt, name: str, dtype, defines: dict | None = None):
-    """The built program for ``kernels/<name>`` on runtime ``rt`` (cached)."""
+    """The built program for ``kernels/<name>`` on runtime ``rt`` (cached on the runtime)."""
     import pyopencl as cl
 
     opts = build_options(dtype, defines)
-    key = (name, tuple(opts))
-    prg = rt._programs.get(key)
-    if prg is None:
+
+    def build():
         text = source("common.cl") + "\n#line 1\n" + source(name)
         try:
-            prg = cl.Program(rt.context, text).build(options=opts)
+            return cl.Program(rt.context, text).build(options=opts)
         except cl.RuntimeError as exc:  # build failure: pyopencl puts the log in the message
             raise KernelBuildError(
                 f"OpenCL build of kernels/{name} failed on '{rt.caps.name}' "
                 f"(options {' '.join(opts)}):\n{exc}"
             ) from exc
-        rt._programs[key] = prg
-        rt._programs[key + ("kernels",)] = {}
-    return prg
+
+    return rt.cached(("program", name, tuple(opts)), build)
 
 
 def kernel(rt, name: str, kernel_name: str, dtype, defines: dict | None = None):
     """A cached kernel object ``kernel_name`` from ``kernels/<name>``."""
-    prg = program(rt, name, dtype, defines)
-    kcache = rt._programs[(name, tuple(build_options(dtype, defines)), "kernels")]
-    k = kcache.get(kernel_name)
-    if k is None:
-        k = getattr(prg, kernel_name)
-        kcache[kernel_name] = k
-    return k
+    opts = tuple(build_options(dtype, defines))
+    return rt.cached(("kernel", name, opts, kernel_name),
+                     lambda: getattr(program(rt, name, dtype, defines), kernel_name))
+
+
+def local_memory(nbytes: int):
+    """A __local buffer argument of ``nbytes`` bytes."""
+    import pyopencl as cl
+
+    return cl.LocalMemory(int(nbytes))
 
 
 def work_group_size(rt, k, cap: int = 256) -> int:

@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 
 from . import kernels
-from .errors import InputError
+from ..errors import InputError
 
 BACKENDS = ("vkfft", "reikna")
 
@@ -144,14 +144,13 @@ def _install_reikna_numpy2_compat():
 
 
 def _reikna_thread(rt):
-    thr = rt.cache.get("reikna_thread")
-    if thr is None:
+    def make():
         _install_reikna_numpy2_compat()
         from reikna.cluda import ocl_api
 
-        thr = ocl_api().Thread(rt.queue)
-        rt.cache["reikna_thread"] = thr
-    return thr
+        return ocl_api().Thread(rt.queue)
+
+    return rt.cached(("reikna_thread",), make)
 
 
 def get_plan(rt, shape, batch: int, dtype, backend: str = "auto") -> FFTPlan:
@@ -159,8 +158,4 @@ def get_plan(rt, shape, batch: int, dtype, backend: str = "auto") -> FFTPlan:
     backend = resolve_backend(backend)
     dtype = rt.check_dtype(dtype)
     key = ("fft", backend, tuple(int(s) for s in shape), int(batch), dtype.str)
-    plan = rt.cache.get(key)
-    if plan is None:
-        plan = FFTPlan(rt, shape, batch, dtype, backend)
-        rt.cache[key] = plan
-    return plan
+    return rt.cached(key, lambda: FFTPlan(rt, shape, batch, dtype, backend))

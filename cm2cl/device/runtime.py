@@ -2,8 +2,9 @@
 
 Order of choice: ``CM2CL_DEVICE`` (an index into :func:`list_devices` or a fragment of the
 device or platform name), else ``PYOPENCL_CTX`` (pyopencl's own syntax), else the best GPU by
-a scoring rule, else the best CPU device (PoCL).  Nothing above this module touches
-``pyopencl.get_platforms`` directly.
+a scoring rule, else the best CPU device (PoCL).  Nothing outside :mod:`cm2cl.device` touches
+pyopencl. A :class:`Runtime` (one per device per process) owns every per-device cache: built
+programs, kernels, FFT plans and library handles (:meth:`Runtime.cached`).
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from .errors import DeviceError
+from ..errors import DeviceError
 
 NO_DEVICE_HELP = (
     "no OpenCL device found. Install an OpenCL driver for your GPU, or the CPU fallback PoCL: "
@@ -46,6 +47,14 @@ class Capabilities:
     compute_units: int
     local_mem: int
     opencl_version: str
+    platform_version: str = ""
+    driver_version: str = ""
+
+    @property
+    def implementation(self) -> str:
+        """Which OpenCL implementation the device comes from, with its version; for PoCL also where
+        it was installed from (the system's package, or PyPI's pocl-binary-distribution)."""
+        return implementation_of(self.platform, self.platform_version, self.driver_version)
 
     @property
     def score(self) -> float:
@@ -95,7 +104,32 @@ def capabilities(device, index: int = -1) -> Capabilities:
         compute_units=int(device.max_compute_units),
         local_mem=int(device.local_mem_size),
         opencl_version=device.version.strip(),
+        platform_version=device.platform.version.strip(),
+        driver_version=device.driver_version.strip(),
     )
+
+
+def implementation_of(platform: str, platform_version: str, driver_version: str) -> str:
+    """'PoCL 3.1+debian (system package)', 'PoCL 3.0-rc2 (PyPI pocl-binary-distribution 3.0)',
+    or the platform name and driver version for other vendors."""
+    import re
+
+    m = re.search(r"PoCL\s+(\S+)", platform_version)
+    if not m:
+        return f"{platform} (driver {driver_version})"
+    ver = m.group(1)
+    try:
+        from importlib.metadata import PackageNotFoundError, version
+        pypi = version("pocl-binary-distribution")
+    except PackageNotFoundError:
+        pypi = None
+    if re.search(r"debian|ubuntu|fedora|conda", ver, re.I):
+        origin = "system package"
+    elif pypi and ver.split("-")[0].split("+")[0] == pypi.split("-")[0].split("+")[0].split(".post")[0]:
+        origin = f"PyPI pocl-binary-distribution {pypi}"
+    else:
+        origin = "system or conda install"
+    return f"PoCL {ver} ({origin})"
 
 
 def list_devices() -> list[Capabilities]:
@@ -160,6 +194,11 @@ def compiler_works(device) -> tuple[bool, str]:
     return _PROBES[key]
 
 
+def compiler_report() -> dict:
+    """{device index: (compiles, reason)} for every device :func:`list_devices` shows."""
+    return {i: compiler_works(d) for i, d in enumerate(_all_devices())}
+
+
 def select_device(spec: str | int | None = None):
     """Return the pyopencl Device to use.
 
@@ -190,8 +229,8 @@ def select_device(spec: str | int | None = None):
 class Runtime:
     """A context and in-order queue on one device, plus its capabilities.
 
-    One Runtime per device per process (see :func:`get_runtime`); kernels and FFT plans are
-    cached on it.
+    One Runtime per device per process (see :func:`get_runtime`); it owns every cache of its
+    device (programs, kernels, FFT plans and library handles) through :meth:`cached`.
     """
 
     def __init__(self, device):
@@ -200,8 +239,26 @@ class Runtime:
         self.caps = capabilities(device, _all_devices().index(device) if device in _all_devices() else -1)
         self.context = cl.Context([device])
         self.queue = cl.CommandQueue(self.context)
-        self._programs = {}
-        self.cache = {}  # FFT plans and other per-context objects
+        self._cache: dict = {}
+
+    def cached(self, key, factory):
+        """The object stored under ``key`` (a hashable tuple whose first item names the kind: "program",
+        "kernel", "fft", ...), made by ``factory()`` on first use."""
+        obj = self._cache.get(key)
+        if obj is None:
+            obj = factory()
+            self._cache[key] = obj
+        return obj
+
+    def zeros(self, shape, dtype):
+        """A zero-filled device array (pyopencl.array.Array) on this runtime's queue."""
+        import pyopencl.array as cla
+
+        return cla.zeros(self.queue, shape, np.dtype(dtype))
+
+    def cached_keys(self, kind: str) -> list:
+        """Keys of the cached objects of one kind (for tests and diagnostics)."""
+        return [k for k in self._cache if k[0] == kind]
 
     def check_dtype(self, dtype) -> np.dtype:
         """The real type to compute in; refuse float64 on devices without fp64."""
@@ -238,13 +295,14 @@ def get_runtime(device=None) -> Runtime:
 def format_table(caps: list[Capabilities], chosen: int | None = None, compiles=None) -> str:
     """Plain-text table of devices, as printed by ``cm2cl devices``; ``compiles`` maps a device
     index to (ok, reason) from :func:`compiler_works`."""
-    head = ["#", "device", "platform", "type", "fp64", "global mem", "max buffer", "max wg", "CUs", "compiles"]
+    head = ["#", "device", "implementation", "type", "fp64", "global mem", "max buffer", "max wg", "CUs",
+            "compiles"]
     rows = []
     for c in caps:
         mark = "*" if chosen is not None and c.index == chosen else " "
         ok = (compiles or {}).get(c.index)
         rows.append([
-            f"{mark}{c.index}", c.name, c.platform[:40], c.kind, "yes" if c.fp64 else "no",
+            f"{mark}{c.index}", c.name[:36], c.implementation[:52], c.kind, "yes" if c.fp64 else "no",
             f"{c.global_mem / 2**30:.1f} GiB", f"{c.max_alloc / 2**30:.2f} GiB",
             str(c.max_work_group_size), str(c.compute_units),
             "?" if ok is None else ("yes" if ok[0] else "NO: " + ok[1][:60]),

@@ -13,10 +13,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import checks, fft, kernels
-from .device import get_runtime
-from .errors import InputError
-from .volume import Volume, slab_bounds
+from .. import validate
+from ..device import fft, kernels
+from ..device.runtime import get_runtime
+from ..errors import InputError
+from ..device.volume import Volume, slab_bounds
 
 
 def min_padded_shape(sensor_shape):
@@ -59,7 +60,7 @@ class ForwardModel:
 
     def __init__(self, psf, *, dtype=np.float32, backend="auto", device=None,
                  padded_shape=None, max_slab_planes=None):
-        psf = checks.psf_stack(psf, "psf")
+        psf = validate.psf_stack(psf, "psf")
         self.rt = get_runtime(device)
         self.dtype = self.rt.check_dtype(dtype)
         self.cdtype = fft.complex_dtype(self.dtype)
@@ -173,7 +174,7 @@ class ForwardModel:
 
     # ---- numpy in, numpy out -------------------------------------------------------------
     def _volume_arg(self, x, name="x"):
-        x = checks.real_array(x, name, ndims=(2, 3))
+        x = validate.real_array(x, name, ndims=(2, 3))
         if x.ndim == 2:
             x = x[None]
         want = (self.nz,) + self.padded_shape
@@ -183,7 +184,7 @@ class ForwardModel:
         return x
 
     def _sensor_arg(self, y, name="y"):
-        y = checks.real_array(y, name, ndims=(2,))
+        y = validate.real_array(y, name, ndims=(2,))
         if y.shape != self.sensor_shape:
             raise InputError(f"{name}: shape {y.shape} does not match the PSF's sensor grid {self.sensor_shape}")
         return y

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .errors import DeviceError
+from ..errors import DeviceError
 
 
 def slab_bounds(nz: int, plane_bytes: int, max_alloc: int, max_planes: int | None = None):

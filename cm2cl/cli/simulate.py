@@ -10,7 +10,7 @@ import argparse
 
 from ..errors import InputError
 
-__all__ = ["register", "run"]
+__all__ = ["register", "command"]
 
 
 def register(subparsers) -> argparse.ArgumentParser:
@@ -25,12 +25,12 @@ def register(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=None,
                    help="random seed (default: the scene's 'seed', else a fresh one, recorded in the JSON)")
     p.add_argument("--list", action="store_true", help="list the built-in scenes and exit")
-    p.set_defaults(func=run)
+    p.set_defaults(func=command)
     return p
 
 
-def run(args) -> int:
-    from . import builtin_scenes, load_scene, simulate
+def command(args) -> int:
+    from ..simulate import builtin_scenes, load_scene, simulate
 
     if args.list:
         for name, path in builtin_scenes().items():

@@ -10,8 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import InputError
-from .params import ADMMParams
+from ..errors import InputError
+from ..solver.params import ADMMParams
 
 _DEFAULTS = ADMMParams()
 
@@ -46,7 +46,7 @@ def register(sub):
     g.add_argument("--padded", action="store_true",
                    help="write the whole padded grid (emitters outside the field of view) instead of the FOV")
     g.add_argument("--quiet", action="store_true", help="no progress line")
-    r.set_defaults(func=run)
+    r.set_defaults(func=command)
 
 
 def _offset(text: str):
@@ -89,10 +89,10 @@ class Progress:
             sys.stderr.write("\n")
 
 
-def run(args) -> int:
-    from . import io
-    from .admm import reconstruct
-    from .psf import prepare
+def command(args) -> int:
+    from .. import io
+    from ..io.prepare import prepare
+    from ..solver import reconstruct
 
     out = Path(args.output)
     if out.suffix.lower() not in (".tif", ".tiff"):

@@ -6,22 +6,24 @@ Splits (DESIGN.md section 3): v = Hx (crop-aware data step), w = x (l1 + non-neg
 u = x (TV prox by warm-started dual iterations), and the exact x step by Sherman-Morrison per
 lateral frequency. Every step is a kernel in ``kernels/``; inside the loop the only transfer
 between host and device is one small buffer of reduced scalars per iteration.
-The float64 numpy twin is :func:`cm2cl.reference.admm`.
+The float64 numpy twin is :func:`cm2cl.reference.admm` (tests and tools only).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from . import checks, kernels
-from .device import get_runtime
-from .errors import DeviceError, InputError
+from .. import validate
+from ..device import kernels
+from ..device.runtime import get_runtime
+from ..errors import DeviceError, InputError
 from .forward import ForwardModel, choose_padded_shape, min_padded_shape
-from .fft import get_plan, resolve_backend
+from ..device.fft import get_plan, resolve_backend
 from .control import Control
 from .params import ADMMParams
 from .result import Reconstruction
-from .volume import Volume
+from ..device.volume import Volume
+from .memory import check_fits
 
 # Slots of the per-iteration reduction buffer.
 DX2, X2, L1, TV, RW2, SW2, RV2, SV2, DATA2, RU2, SU2 = range(11)
@@ -30,42 +32,12 @@ NSLOTS = 11
 #: 1.1-1.6x; GPUs keep hundreds of work-groups at this size for a few million voxels)
 PER_ITEM = 64
 
-#: real volumes on the padded grid the solver keeps (x, x_old/scratch, u, w, eta, rho, px, py, pz)
-REAL_VOLUMES = 9
-
-
-def memory_estimate(nz, padded_shape, dtype, backend) -> dict:
-    """Bytes the solver allocates on the device (FFT libraries may add their own scratch)."""
-    py, px = padded_shape
-    item = np.dtype(dtype).itemsize
-    spec_plane = py * ((px // 2 + 1) if backend == "vkfft" else px) * 2 * item
-    real_plane = py * px * item
-    per_plane = REAL_VOLUMES * real_plane + 2 * spec_plane  # + x spectra + PSF spectra
-    fixed = 6 * real_plane + 4 * spec_plane  # planes: v, xi, hx, cty, r, psf tmp; R, S, comp, hn2
-    return {"per_plane": per_plane, "fixed": fixed, "total": nz * per_plane + fixed,
-            "real_volume": nz * real_plane, "psf_spectra": nz * spec_plane}
-
-
-def check_fits(rt, nz, padded_shape, dtype, backend, budget_fraction=0.9):
-    est = memory_estimate(nz, padded_shape, dtype, backend)
-    budget = int(rt.caps.global_mem * budget_fraction)
-    if est["total"] > budget:
-        fit = max(0, (budget - est["fixed"]) // est["per_plane"])
-        raise DeviceError(
-            f"problem too large for device '{rt.caps.name}': {nz} planes on a "
-            f"{padded_shape[0]} x {padded_shape[1]} padded grid need {est['total'] / 2**30:.2f} GiB, "
-            f"the device offers {budget / 2**30:.2f} GiB; {fit} planes fit at this size "
-            "(use fewer planes, bin the measurement, or depth slabs over devices)"
-        )
-    return est
-
-
 class ADMMSolver:
     """Device state of one reconstruction problem (PSF stack + parameters)."""
 
     def __init__(self, psf, params: ADMMParams, *, dtype=np.float32, backend="auto", device=None,
                  padded_shape=None, max_slab_planes=None):
-        psf = checks.psf_stack(psf, "psf")
+        psf = validate.psf_stack(psf, "psf")
         self.p = params
         self.rt = rt = get_runtime(device)
         self.dtype = rt.check_dtype(dtype)
@@ -113,9 +85,8 @@ class ADMMSolver:
         self.v, self.xi, self.hx, self.cty, self.r = (plane() for _ in range(5))
         splane = lambda: Volume(rt, [(0, 1)], m.spec_plane, m.cdtype)  # noqa: E731
         self.R, self.S, self.comp = (splane() for _ in range(3))
-        import pyopencl.array as cla
-        self.partials = cla.zeros(rt.queue, NSLOTS * self.pstride, self.dtype)
-        self.out = cla.zeros(rt.queue, NSLOTS, self.dtype)
+        self.partials = rt.zeros(NSLOTS * self.pstride, self.dtype)
+        self.out = rt.zeros(NSLOTS, self.dtype)
         self.allocated_bytes = sum(a.nbytes for a in (
             [m.psf_spectra, self.hn2, self.x, self.g, self.u, self.w, self.eta, self.rho, self.spec,
              self.v, self.xi, self.hx, self.cty, self.r, self.R, self.S, self.comp] + self.pd)) \
@@ -132,12 +103,10 @@ class ADMMSolver:
 
     def _red(self, name, n, slot, *args):
         """Launch a fused update + reduction over n elements; its sums go to partials[slot...]."""
-        import pyopencl as cl
-
         L = self.local[name]
         groups = -(-int(n) // (L * PER_ITEM))
         self.k[name](self.rt.queue, (groups * L,), (L,), *args, self.partials.data, np.int32(self.pstride),
-                     cl.LocalMemory(L * self.dtype.itemsize), np.int32(slot), np.int32(PER_ITEM),
+                     kernels.local_memory(L * self.dtype.itemsize), np.int32(slot), np.int32(PER_ITEM),
                      self.contiguous)
 
     def x_step(self, mu_v, mu_u, mu_w):
@@ -167,15 +136,14 @@ class ADMMSolver:
         self._plan2d.inverse(self.S.slabs[0], self.hx.slabs[0])
 
     # ---- one reconstruction -----------------------------------------------------------------
-    def run(self, y, callback=None, callback_every=1) -> Reconstruction:
-        y = checks.real_array(y, "measurement", ndims=(2,))
+    def solve(self, y, callback=None, callback_every=1) -> Reconstruction:
+        y = validate.real_array(y, "measurement", ndims=(2,))
         if y.shape != self.M:
             raise InputError(f"measurement: shape {y.shape} does not match the PSF's sensor grid {self.M}")
         ymax = float(np.max(y))
         if self.p.normalize and not ymax > 0:
             raise InputError("measurement: has no positive value (check the offset subtraction)")
         y_scale = 1.0 / ymax if self.p.normalize else 1.0
-        import pyopencl as cl
 
         p, m, rt, q, R = self.p, self.model, self.rt, self.rt.queue, self.dtype.type
         I = np.int32  # noqa: E741
@@ -236,7 +204,7 @@ class ADMMSolver:
             # ---- the scalars of this iteration: one small read
             L = self.local["reduce_partials"]
             self.k["reduce_partials"](q, (NSLOTS * L,), (L,), self.partials.data, self.out.data,
-                                      I(self.pstride), cl.LocalMemory(L * self.dtype.itemsize))
+                                      I(self.pstride), kernels.local_memory(L * self.dtype.itemsize))
             s = self.out.get().astype(np.float64)
             if not np.all(np.isfinite(s)):
                 raise DeviceError(f"iteration {it}: non-finite residuals or objective on the device; "
@@ -257,7 +225,7 @@ class ADMMSolver:
 
 def reconstruct(measurement, psf, *, dtype=np.float32, backend="auto", device=None,
                 padded_shape=None, max_slab_planes=None, callback=None, callback_every=1,
-                **params) -> Reconstruction:
+                voxel_size_um=None, depths_um=None, **params) -> Reconstruction:
     """Reconstruct a 3D volume from one CM2 measurement (paper Eq. 4) on an OpenCL device.
 
     Parameters
@@ -269,6 +237,8 @@ def reconstruct(measurement, psf, *, dtype=np.float32, backend="auto", device=No
     device : index, name fragment, pyopencl Device or Runtime (default: see cm2cl.device).
     padded_shape : padded grid (Py, Px) >= 2M - 1 (default: the backend's fast size).
     callback : called with the log row every `callback_every` iterations.
+    voxel_size_um : optional object-space voxel size (dz, dy, dx) in um, carried to the result.
+    depths_um : optional depth of each PSF plane in um, carried to the result.
     **params : fields of :class:`cm2cl.params.ADMMParams` (l1, tv, tv_axial_weight, max_iter, tol, ...).
 
     Returns
@@ -277,14 +247,25 @@ def reconstruct(measurement, psf, *, dtype=np.float32, backend="auto", device=No
     ``.log`` and ``.scaling``.
     """
     prm = ADMMParams.from_kwargs(**params)
-    psf = checks.psf_stack(psf, "psf")
-    y = checks.real_array(measurement, "measurement", ndims=(2,))
+    psf = validate.psf_stack(psf, "psf")
+    y = validate.real_array(measurement, "measurement", ndims=(2,))
     if y.shape != psf.shape[1:]:
         raise InputError(f"measurement: shape {y.shape} does not match the PSF's sensor grid "
                          f"{psf.shape[1:]} (psf shape {psf.shape})")
     solver = ADMMSolver(psf, prm, dtype=dtype, backend=backend, device=device,
                         padded_shape=padded_shape, max_slab_planes=max_slab_planes)
-    return solver.run(y, callback=callback, callback_every=callback_every)
+    rec = solver.solve(y, callback=callback, callback_every=callback_every)
+    if voxel_size_um is not None:
+        vs = tuple(float(v) for v in voxel_size_um)
+        if len(vs) != 3 or not all(np.isfinite(v) and v > 0 for v in vs):
+            raise InputError(f"voxel_size_um: expected 3 positive numbers (dz, dy, dx), got {voxel_size_um!r}")
+        rec.voxel_size_um = vs
+    if depths_um is not None:
+        d = np.asarray(depths_um, float).ravel()
+        if d.size != psf.shape[0] or not np.all(np.isfinite(d)):
+            raise InputError(f"depths_um: expected {psf.shape[0]} finite depths, got {np.shape(depths_um)}")
+        rec.depths_um = d
+    return rec
 
 
-__all__ = ["ADMMSolver", "reconstruct", "memory_estimate"]
+__all__ = ["ADMMSolver", "reconstruct"]

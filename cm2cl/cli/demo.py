@@ -14,9 +14,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import InputError
+from ..errors import InputError
 
-__all__ = ["register", "run", "demo"]
+__all__ = ["register", "command", "demo"]
 
 SCENE = "demo_beads"
 #: reconstruction settings for the demo scene (normalised problem, see cm2cl.params.ADMMParams)
@@ -37,11 +37,11 @@ def register(subparsers):
     p.add_argument("--device", default=None, help="OpenCL device index or name fragment (see `cm2cl devices`)")
     p.add_argument("--seed", type=int, default=None, help="simulation seed (default: the scene's)")
     p.add_argument("--iterations", type=int, default=RECON["max_iter"], help="ADMM iteration cap (default 200)")
-    p.set_defaults(func=run)
+    p.set_defaults(func=command)
     return p
 
 
-def run(args) -> int:
+def command(args) -> int:
     demo(args.outdir, device=args.device, seed=args.seed, max_iter=args.iterations, verbose=True)
     return 0
 
@@ -56,9 +56,10 @@ def _object_positions(index, optics, depths_um):
 def demo(outdir="cm2cl-demo", *, device=None, seed=None, max_iter: int = RECON["max_iter"],
          verbose: bool = True) -> dict:
     """Run the demo; returns its summary (also written to OUTDIR/demo.json)."""
-    from . import analysis, reconstruct
-    from .io import StagedOutput, check_output_dir, write_tiff
-    from .simulate import load_scene, run as simulate_run, write as simulate_write
+    from .. import analysis
+    from ..io import StagedOutput, check_output_dir, write_tiff
+    from ..simulate import load_scene, simulate_scene, write_simulation
+    from ..solver import reconstruct
 
     say = print if verbose else (lambda *a, **k: None)
     if max_iter < 1:
@@ -71,7 +72,7 @@ def demo(outdir="cm2cl-demo", *, device=None, seed=None, max_iter: int = RECON["
     optics = scene.optics
     say(f"cm2cl demo: simulating '{scene.name}': {scene.description}")
     t = time.perf_counter()
-    sim = simulate_run(scene, seed, device)
+    sim = simulate_scene(scene, seed, device)
     t_sim = time.perf_counter() - t
     say(f"  simulated a {sim.measurement.shape[0]} x {sim.measurement.shape[1]} {sim.measurement.dtype} "
         f"measurement and a {len(sim.depths_um)}-plane PSF in {t_sim:.1f} s "
@@ -134,7 +135,7 @@ def demo(outdir="cm2cl-demo", *, device=None, seed=None, max_iter: int = RECON["
     # outputs: build next to OUTDIR, move in at the end, demo.json last
     with StagedOutput(out) as stage:
         tmp = stage.dir
-        simulate_write(sim, tmp / "simulation")
+        write_simulation(sim, tmp / "simulation")
         write_tiff(tmp / "reconstruction.tif", vol.astype(np.float32), voxel_size_um=sim.voxel_size_um,
                    depths_um=sim.depths_um, extra={"kind": "reconstruction", "scene": scene.name,
                                                    "params": params, "scaling": rec.scaling})

@@ -31,6 +31,10 @@ class Reconstruction:
     scaling: dict = field(default_factory=dict)
     params: dict = field(default_factory=dict)
     info: dict = field(default_factory=dict)
+    #: object-space voxel size (dz, dy, dx) in um of ``volume``, when known (from the PSF stack)
+    voxel_size_um: tuple | None = None
+    #: depth of each plane in um, when known
+    depths_um: np.ndarray | None = None
 
     @property
     def volume(self) -> np.ndarray:
@@ -43,6 +47,11 @@ class Reconstruction:
     @property
     def seconds(self) -> float:
         return float(self.log[-1]["seconds"]) if self.log else 0.0
+
+    @property
+    def history(self) -> dict:
+        """The iteration log as arrays, one per field of ``LOG_FIELDS`` (like SCICO's itstat)."""
+        return {k: self.log_array(k) for k in LOG_FIELDS}
 
     def log_array(self, name: str) -> np.ndarray:
         return np.array([row[name] for row in self.log], dtype=float)

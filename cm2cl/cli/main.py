@@ -1,0 +1,44 @@
+"""The ``cm2cl`` command: one sub-command per job; errors are one line and a non-zero exit."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from ..errors import CM2Error
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="cm2cl", description=__doc__)
+    p.add_argument("--version", action="version", version=f"cm2cl {__import__('cm2cl').__version__}")
+    sub = p.add_subparsers(dest="command", metavar="COMMAND")
+    for register in _registrars():
+        register(sub)
+    return p
+
+
+def _registrars():
+    """One module per sub-command, each with ``register(subparsers)`` and ``command(args)``."""
+    from . import demo, devices, reconstruct, simulate
+
+    return [devices.register, demo.register, simulate.register, reconstruct.register]
+
+
+def main(argv=None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 1
+    try:
+        return int(args.func(args) or 0)
+    except CM2Error as exc:
+        print(f"cm2cl: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("cm2cl: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

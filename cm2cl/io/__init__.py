@@ -1,0 +1,7 @@
+"""Files in and out: TIFF / OME-TIFF with physical voxel sizes and depths (:mod:`.tiff`), outputs
+that appear only when complete (:mod:`.staging`), and measurement / PSF preparation (camera offset,
+binning; :mod:`.prepare`)."""
+
+from .prepare import bin_image, estimate_offset, prepare, subtract_offset  # noqa: F401
+from .staging import StagedOutput, check_output_dir, jsonable  # noqa: F401
+from .tiff import read_tiff, write_tiff  # noqa: F401
