@@ -423,7 +423,7 @@ count = 3
     (GOOD.replace("size_mm = [2.0, 2.0, 0.5]\n", ""), "volume.size_mm: missing (required)"),
     (GOOD.replace("dz_um", "dz_mm"), "volume.dz_mm: unknown key"),
     (GOOD.replace("count = 3", "count = 3\ndensity_per_mm3 = 2.0"), "objects[0]: give exactly one of count"),
-    (GOOD.replace("binning = 8", "binning = 0"), "scene 'x.toml': optics.binning: must be an integer >= 1"),
+    (GOOD.replace("binning = 8", "binning = 0"), "scene 'x.toml': optics.binning: must be >= 1, got 0"),
     (GOOD.replace("binning = 8", "binnig = 8"), "optics.binnig: unknown optics field"),
     (GOOD + '[[effects]]\nname = "scattering"\n', "effects[0].ls_um: missing (required)"),
     (GOOD + '[[effects]]\nname = "noise"\nsigma = 3\n', "effects[0].sigma: unknown key"),

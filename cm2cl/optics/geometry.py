@@ -37,6 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import InputError
+from ..validate import Checker
 
 __all__ = [
     "CM2Optics", "Aberration", "foci_separation_mm", "axial_resolution_um", "sbp_3d",
@@ -94,12 +95,9 @@ class Aberration:
     ref_angle_deg: float = 20.0
 
     def __post_init__(self):
-        for name in ("w020", "w222", "w131"):
-            v = getattr(self, name)
-            if not np.isfinite(v):
-                raise InputError(f"aberration.{name}: must be finite, got {v!r}")
-        if not (0 < self.ref_angle_deg < 89):
-            raise InputError(f"aberration.ref_angle_deg: must be in (0, 89), got {self.ref_angle_deg!r}")
+        Checker(None, "aberration").fields(self, {
+            "w020": {"type": "float"}, "w222": {"type": "float"}, "w131": {"type": "float"},
+            "ref_angle_deg": {"type": "float", "min": 0, "exclusive": True, "max": 89}})
 
     @property
     def total_waves(self) -> float:
@@ -145,36 +143,16 @@ class CM2Optics:
     spherical_waves: float = 1.0
 
     def __post_init__(self):
-        def pos(name):
+        pos = {"type": "float", "min": 0, "exclusive": True}
+        ck = Checker(None, "optics")
+        ck.fields(self, {"pitch_mm": pos, "aperture_mm": pos, "l0_mm": pos, "l_mm": pos, "wavelength_um": pos,
+                         "pixel_um": pos, "binning": {"type": "int", "min": 1},
+                         "supersample": {"type": "int", "min": 1}, "spherical_waves": {"type": "float"}})
+        for name in ("lenses", "sensor_px", "sensor_shape"):
             v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v) or v <= 0:
-                raise InputError(f"optics.{name}: must be a positive number, got {v!r}")
-        for name in ("pitch_mm", "aperture_mm", "l0_mm", "l_mm", "wavelength_um", "pixel_um"):
-            pos(name)
-
-        def int_pair(name, v):
-            try:
-                pair = tuple(int(t) for t in v)
-            except (TypeError, ValueError):
-                raise InputError(f"optics.{name}: expected (rows, cols) integers, got {v!r}") from None
-            if len(pair) != 2 or any(t < 1 for t in pair) or any(float(t) != float(s) for t, s in zip(pair, v)):
-                raise InputError(f"optics.{name}: expected two positive integers (rows, cols), got {v!r}")
-            object.__setattr__(self, name, pair)
-        int_pair("lenses", self.lenses)
-        int_pair("sensor_px", self.sensor_px)
-        if self.sensor_shape is not None:
-            int_pair("sensor_shape", self.sensor_shape)
-        if isinstance(self.binning, bool) or not isinstance(self.binning, (int, np.integer)) or self.binning < 1:
-            raise InputError(f"optics.binning: must be an integer >= 1, got {self.binning!r}")
-        if self.supersample is not None and (isinstance(self.supersample, bool) or
-                                             not isinstance(self.supersample, (int, np.integer))
-                                             or self.supersample < 1):
-            raise InputError(f"optics.supersample: must be an integer >= 1 or None, got {self.supersample!r}")
-        if isinstance(self.spherical_waves, bool) or not isinstance(self.spherical_waves, (int, float)) \
-                or not np.isfinite(self.spherical_waves):
-            raise InputError(f"optics.spherical_waves: must be a finite number, got {self.spherical_waves!r}")
-        if self.aperture_mm > self.pitch_mm * (1 + 1e-9):
-            raise InputError(f"optics.aperture_mm: {self.aperture_mm} exceeds the pitch {self.pitch_mm}")
+            if v is not None:
+                object.__setattr__(self, name, tuple(ck.value(name, list(v) if isinstance(v, (tuple, list)) else v,
+                                                              {"type": "intpair2", "min": 1})))
         if self.shape[0] < 1 or self.shape[1] < 1:
             raise InputError(f"optics.binning: {self.binning} leaves no pixel of the {self.sensor_px} sensor")
 

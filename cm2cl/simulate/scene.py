@@ -39,16 +39,21 @@ file, the key and the problem.
 from __future__ import annotations
 
 import dataclasses
-import math
-import tomllib
+import sys
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # Python 3.10: the same parser, from PyPI
+    import tomli as tomllib
 
 import numpy as np
 
 from ..errors import InputError
 from ..optics import CM2Optics, depth_planes
+from ..validate import Checker
 from .effects import EFFECTS, STAGES
 from .objects import OBJECTS, Box
 
@@ -135,107 +140,6 @@ def resolve_scene(name_or_path) -> Path:
 
 
 # --------------------------------------------------------------------------------------------
-# value checks
-# --------------------------------------------------------------------------------------------
-
-class _Checker:
-    def __init__(self, label):
-        self.label = label
-
-    def fail(self, key, problem):
-        raise InputError(f"scene '{self.label}': {key}: {problem}")
-
-    def number(self, key, v, spec=None, integer=False):
-        spec = spec or {}
-        if isinstance(v, bool) or not isinstance(v, (int, float)):
-            self.fail(key, f"expected a {'whole ' if integer else ''}number, got {v!r}")
-        if integer and not float(v).is_integer():
-            self.fail(key, f"expected a whole number, got {v!r}")
-        if not math.isfinite(v):
-            self.fail(key, f"must be finite, got {v!r}")
-        lo, hi, excl = spec.get("min"), spec.get("max"), spec.get("exclusive", False)
-        if lo is not None and (v < lo or (excl and v == lo)):
-            self.fail(key, f"must be {'>' if excl else '>='} {lo}, got {v!r}")
-        if hi is not None and v > hi:
-            self.fail(key, f"must be <= {hi}, got {v!r}")
-        return int(v) if integer else float(v)
-
-    def vector(self, key, v, n, spec=None, integer=False):
-        if not isinstance(v, (list, tuple)) or len(v) != n:
-            self.fail(key, f"expected a list of {n} numbers, got {v!r}")
-        return [self.number(f"{key}[{i}]", t, spec, integer) for i, t in enumerate(v)]
-
-    def value(self, key, v, spec):
-        kind = spec["type"]
-        if v is None:
-            return None
-        if kind == "float":
-            return self.number(key, v, spec)
-        if kind == "int":
-            return self.number(key, v, spec, integer=True)
-        if kind == "bool":
-            if not isinstance(v, bool):
-                self.fail(key, f"expected true or false, got {v!r}")
-            return v
-        if kind == "str":
-            if not isinstance(v, str):
-                self.fail(key, f"expected a string, got {v!r}")
-            if "choices" in spec and v not in spec["choices"]:
-                self.fail(key, f"unknown value {v!r} (known: {', '.join(spec['choices'])})")
-            return v
-        if kind == "vec2":
-            return self.vector(key, v, 2, spec)
-        if kind == "vec3":
-            return self.vector(key, v, 3, spec)
-        if kind == "intpair":
-            out = self.vector(key, v, 2, spec, integer=True)
-            if out[1] < out[0]:
-                self.fail(key, f"expected [first, last] with first <= last, got {v!r}")
-            return out
-        if kind == "points3":
-            if not isinstance(v, list) or not v:
-                self.fail(key, f"expected a non-empty list of [x, y, z] positions, got {v!r}")
-            return [self.vector(f"{key}[{i}]", p, 3) for i, p in enumerate(v)]
-        raise AssertionError(kind)
-
-    def named_tables(self, data, section, field, known, what):
-        """Yield (index, key, table, name) for each table of the array ``section`` whose ``field``
-        names one of ``known`` (objects by 'type', effects by 'name')."""
-        items = data.get(section, [])
-        if not isinstance(items, list):
-            self.fail(section, f"expected an array of tables ([[{section}]])")
-        for i, t in enumerate(items):
-            key = f"{section}[{i}]"
-            if not isinstance(t, dict):
-                self.fail(key, f"expected a table, got {t!r}")
-            if field not in t:
-                self.fail(f"{key}.{field}", f"missing (known: {', '.join(known)})")
-            name = t[field]
-            if name not in known:
-                self.fail(f"{key}.{field}", f"unknown {what} {name!r} (known: {', '.join(known)})")
-            yield i, key, t, name
-
-    def table(self, key, d, specs, skip=()):
-        """Validate a parameter table against specs; returns it with defaults filled."""
-        if not isinstance(d, dict):
-            self.fail(key, f"expected a table, got {d!r}")
-        unknown = [k for k in d if k not in specs and k not in skip]
-        if unknown:
-            self.fail(f"{key}.{unknown[0]}" if key else unknown[0],
-                      f"unknown key (known: {', '.join(specs)})")
-        out = {}
-        for name, spec in specs.items():
-            sub = f"{key}.{name}" if key else name
-            if name in d:
-                out[name] = self.value(sub, d[name], spec)
-            elif spec.get("required"):
-                self.fail(sub, "missing (required)")
-            else:
-                out[name] = spec.get("default")
-        return out
-
-
-# --------------------------------------------------------------------------------------------
 # loading
 # --------------------------------------------------------------------------------------------
 
@@ -275,7 +179,7 @@ def load_scene(source) -> Scene:
 
 def _build(data: dict, source: str) -> Scene:
     label = Path(source).name if not source.startswith("<") else source
-    ck = _Checker(label)
+    ck = Checker(f"scene '{label}'")
     unknown = [k for k in data if k not in TOP_KEYS]
     if unknown:
         ck.fail(unknown[0], f"unknown key (known: {', '.join(TOP_KEYS)})")
