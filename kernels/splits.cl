@@ -13,7 +13,8 @@ inline real_t tv_at(__global const real_t *x, __global const real_t *x_next, con
 
 /* After the x step, for one slab of `planes` planes:
  *   w' = max(x + rho/mu_w - l1/mu_w, 0);  rho += mu_w (x - w');  w = w'
- * Reduces into slots slot0 + (0..5): ||x - x_old||^2, ||x||^2, sum|x|, TV(x), ||x - w'||^2, ||w' - w||^2.
+ * Reduces into slots slot0 + (0..7): ||x - x_old||^2, ||x||^2, sum|x|, TV(x), ||x - w'||^2, ||w' - w||^2,
+ * ||w'||^2, ||rho'||^2 (the last two scale the relative residuals of the stopping rule).
  * x_next is the next slab of x (for the axial difference across slabs) when has_next. */
 __kernel void update_w(__global const real_t *x, __global const real_t *x_next, const int has_next,
                        __global const real_t *x_old, __global real_t *w, __global real_t *rho,
@@ -22,14 +23,15 @@ __kernel void update_w(__global const real_t *x, __global const real_t *x_next, 
                        __global real_t *partials, const int pstride, __local real_t *scratch,
                        const int slot0, const int per_item, const int contiguous) {
     const size_t n = (size_t)planes * ny * nx;
-    real_t a0 = 0, a1 = 0, a2 = 0, a3 = 0, a4 = 0, a5 = 0;
+    real_t a0 = 0, a1 = 0, a2 = 0, a3 = 0, a4 = 0, a5 = 0, a6 = 0, a7 = 0;
     const real_t inv_mu = (real_t)1 / mu_w;
     FOR_EACH_REDUCED(i, n, per_item, contiguous, ny, nx, xx, y, z) {
         const real_t xi = x[i];
         const real_t r = rho[i];
         const real_t wn = fmax(xi + (r - l1) * inv_mu, (real_t)0);
         const real_t dx = xi - x_old[i], pw = xi - wn, dw = wn - w[i];
-        rho[i] = r + mu_w * pw;
+        const real_t rn = r + mu_w * pw;
+        rho[i] = rn;
         w[i] = wn;
         a0 += dx * dx;
         a1 += xi * xi;
@@ -37,6 +39,8 @@ __kernel void update_w(__global const real_t *x, __global const real_t *x_next, 
         a3 += tv_at(x, x_next, has_next, i, z, y, xx, planes, ny, nx, aw, iso);
         a4 += pw * pw;
         a5 += dw * dw;
+        a6 += wn * wn;
+        a7 += rn * rn;
     }
     reduce_to(partials, pstride, scratch, a0, slot0 + 0);
     reduce_to(partials, pstride, scratch, a1, slot0 + 1);
@@ -44,12 +48,15 @@ __kernel void update_w(__global const real_t *x, __global const real_t *x_next, 
     reduce_to(partials, pstride, scratch, a3, slot0 + 3);
     reduce_to(partials, pstride, scratch, a4, slot0 + 4);
     reduce_to(partials, pstride, scratch, a5, slot0 + 5);
+    reduce_to(partials, pstride, scratch, a6, slot0 + 6);
+    reduce_to(partials, pstride, scratch, a7, slot0 + 7);
 }
 
 /* The v split on the padded plane (py, px), sensor window (my, mx) at (oy, ox):
  *   v' = (C^T y + mu_v hx + xi) / (C^T C + mu_v);  xi += mu_v (hx - v');  v = v'
  * cty = C^T y (zero outside the window), hx = H x.
- * Reduces into slots slot0 + (0..2): ||hx - v'||^2, ||v' - v||^2, ||C hx - y||^2. */
+ * Reduces into slots slot0 + (0..5): ||hx - v'||^2, ||v' - v||^2, ||C hx - y||^2, ||hx||^2, ||v'||^2,
+ * ||xi'||^2. */
 __kernel void update_v(__global real_t *v, __global real_t *xi, __global const real_t *hx,
                        __global const real_t *cty, const real_t mu_v,
                        const int py, const int px, const int my, const int mx,
@@ -57,7 +64,7 @@ __kernel void update_v(__global real_t *v, __global real_t *xi, __global const r
                        __global real_t *partials, const int pstride, __local real_t *scratch, const int slot0,
                        const int per_item, const int contiguous) {
     const size_t n = (size_t)py * px;
-    real_t a0 = 0, a1 = 0, a2 = 0;
+    real_t a0 = 0, a1 = 0, a2 = 0, a3 = 0, a4 = 0, a5 = 0;
     size_t i0, i1, di;
     reduction_range(n, per_item, contiguous, &i0, &i1, &di);
     for (size_t i = i0; i < i1; i += di) {
@@ -66,13 +73,20 @@ __kernel void update_v(__global real_t *v, __global real_t *xi, __global const r
         const real_t h = hx[i];
         const real_t vn = (cty[i] + mu_v * h + xi[i]) / ((inside ? (real_t)1 : (real_t)0) + mu_v);
         const real_t pv = h - vn, dv = vn - v[i];
-        xi[i] += mu_v * pv;
+        const real_t xn = xi[i] + mu_v * pv;
+        xi[i] = xn;
         v[i] = vn;
         a0 += pv * pv;
         a1 += dv * dv;
+        a3 += h * h;
+        a4 += vn * vn;
+        a5 += xn * xn;
         if (inside) { const real_t d = h - cty[i]; a2 += d * d; }
     }
     reduce_to(partials, pstride, scratch, a0, slot0 + 0);
     reduce_to(partials, pstride, scratch, a1, slot0 + 1);
     reduce_to(partials, pstride, scratch, a2, slot0 + 2);
+    reduce_to(partials, pstride, scratch, a3, slot0 + 3);
+    reduce_to(partials, pstride, scratch, a4, slot0 + 4);
+    reduce_to(partials, pstride, scratch, a5, slot0 + 5);
 }

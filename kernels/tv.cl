@@ -63,7 +63,7 @@ __kernel void tv_dual_step(__global real_t *px, __global real_t *py, __global re
 }
 
 /* u' = z - tau div p (tau = 0: u' = z);  eta += mu_u (x - u');  u = u'.
- * Reduces into slots slot0 + (0..1): ||x - u'||^2, ||u' - u||^2. */
+ * Reduces into slots slot0 + (0..3): ||x - u'||^2, ||u' - u||^2, ||u'||^2, ||eta'||^2. */
 __kernel void tv_finish(__global real_t *u, __global real_t *eta, __global const real_t *x,
                         __global const real_t *px, __global const real_t *py, __global const real_t *pz,
                         __global const real_t *pz_prev, const int has_prev, const int prev_planes,
@@ -72,7 +72,7 @@ __kernel void tv_finish(__global real_t *u, __global real_t *eta, __global const
                         __global real_t *partials, const int pstride, __local real_t *scratch,
                         const int slot0, const int per_item, const int contiguous) {
     const size_t n = (size_t)planes * ny * nx;
-    real_t a0 = 0, a1 = 0;
+    real_t a0 = 0, a1 = 0, a2 = 0, a3 = 0;
     const real_t inv_mu = (real_t)1 / mu_u;
     FOR_EACH_REDUCED(i, n, per_item, contiguous, ny, nx, xx, y, z) {
         const real_t xv = x[i], e = eta[i];
@@ -81,11 +81,16 @@ __kernel void tv_finish(__global real_t *u, __global real_t *eta, __global const
             un -= tau * div_at(px, py, pz, pz_prev, has_prev, has_next, i, z, y, xx,
                                planes, prev_planes, ny, nx, aw);
         const real_t pu = xv - un, du = un - u[i];
-        eta[i] = e + mu_u * pu;
+        const real_t en = e + mu_u * pu;
+        eta[i] = en;
         u[i] = un;
         a0 += pu * pu;
         a1 += du * du;
+        a2 += un * un;
+        a3 += en * en;
     }
     reduce_to(partials, pstride, scratch, a0, slot0 + 0);
     reduce_to(partials, pstride, scratch, a1, slot0 + 1);
+    reduce_to(partials, pstride, scratch, a2, slot0 + 2);
+    reduce_to(partials, pstride, scratch, a3, slot0 + 3);
 }

@@ -74,7 +74,9 @@ def test_device_matches_float64_reference(rt, backend, tv_isotropic):
                      padded_shape=(64, 80), max_slab_planes=3, **kw)
     err = np.linalg.norm(r1.volume_padded - r0.volume_padded) / np.linalg.norm(r0.volume_padded)
     assert err < 2e-5
-    assert [row["mu_u"] for row in r1.log] == [row["mu_u"] for row in r0.log]
+    # the shared control sees the same norms (to float32 rounding), so it adapts the penalties alike
+    for mu in ("mu_v", "mu_u", "mu_w"):
+        np.testing.assert_allclose(r1.log_array(mu), r0.log_array(mu), rtol=1e-5)
     np.testing.assert_allclose(r1.log_array("objective"), r0.log_array("objective"), rtol=1e-5)
 
 
@@ -143,7 +145,7 @@ def test_real_diffusercam_data(rt):
     assert data[0] == pytest.approx(y_energy, rel=1e-4)
     assert data[-1] < data[0] / 200
     obj = rec.log_array("objective")
-    assert np.all(np.diff(obj[10:]) < 1e-3 * obj[10])  # no rise after the transient
+    assert np.all(np.diff(obj[30:]) < 1e-3 * obj[30])  # no rise once the penalties have settled
     r0 = ref.admm(y, psf, padded_shape=rec.info["padded_shape"], **kw)
     err = np.linalg.norm(rec.volume - r0.volume) / np.linalg.norm(r0.volume)
     assert err < 1e-4
@@ -159,13 +161,13 @@ def test_bad_inputs(rt, monkeypatch):
     with pytest.raises(ValueError, match=r"measurement: contains 1 NaN/Inf"):
         reconstruct(bad, psf32)
     for name, val in (("l1", -1.0), ("tv", -0.1), ("mu_v", 0.0), ("tv_axial_weight", 0.0)):
-        with pytest.raises(ValueError, match=rf"{name}: must be finite"):
+        with pytest.raises(ValueError, match=rf"^{name}: must be >=? ?0, got "):
             reconstruct(y32, psf32, **{name: val})
     zero = psf32.copy()
     zero[2] = 0
     with pytest.raises(ValueError, match=r"psf: depth plane\(s\) \[2\] are all zero"):
         reconstruct(y32, zero)
-    with pytest.raises(ValueError, match=r"unknown parameter\(s\) \['lambda1'\]"):
+    with pytest.raises(TypeError, match=r"unexpected keyword argument 'lambda1'"):
         reconstruct(y32, psf32, lambda1=1.0)
     with pytest.raises(ValueError, match="measurement: has no positive value"):
         reconstruct(np.zeros_like(y32), psf32)

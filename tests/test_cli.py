@@ -37,7 +37,7 @@ def test_reconstruct_bad_input_writes_nothing(rt, tmp_path, capsys):
     tifffile.imwrite(tmp_path / "small.tif", np.ones((32, 30), np.uint16))
     cases = [
         (["reconstruct", str(tmp_path / "small.tif"), "--psf", str(psf)], "does not match the PSF"),
-        (["reconstruct", str(meas), "--psf", str(psf), "--tv", "-1"], "tv: must be finite and >= 0"),
+        (["reconstruct", str(meas), "--psf", str(psf), "--tv", "-1"], "tv: must be >= 0, got -1.0"),
         (["reconstruct", str(tmp_path / "nope.tif"), "--psf", str(psf)], "no such file"),
         (["reconstruct", str(meas), "--psf", str(psf), "--offset", "dark"], "--offset: expected"),
     ]

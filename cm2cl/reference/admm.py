@@ -24,7 +24,7 @@ def admm(y, psf, params=None, padded_shape=None, dtype=np.float64, workers=None,
     """
     import scipy.fft as sfft
 
-    from ..solver.control import Control
+    from ..solver.control import Control, ProblemScale
     from ..solver.params import ADMMParams
     from ..solver.result import Reconstruction
 
@@ -52,7 +52,8 @@ def admm(y, psf, params=None, padded_shape=None, dtype=np.float64, workers=None,
     pd = np.zeros((3,) + x.shape, dt)
     v = np.zeros(P, dt)
     xi = np.zeros(P, dt)
-    ctl = Control(p, callback)
+    ctl = Control(p, ProblemScale.of(y * s_y, float(np.sum((psf * s_h) ** 2))), callback)
+    l1, tv = ctl.l1, ctl.tv
     sq = lambda a: float(np.sum(np.asarray(a, np.float64) ** 2))  # noqa: E731
     for it in range(1, p.max_iter + 1):
         mu_v, mu_u, mu_w = ctl.mu_v, ctl.mu_u, ctl.mu_w
@@ -66,15 +67,15 @@ def admm(y, psf, params=None, padded_shape=None, dtype=np.float64, workers=None,
         dx2 = sq(x_new.astype(np.float64) - x)
         x = x_new
         # w step: l1 + non-negativity
-        w_new = np.maximum(x + rho / mu_w - p.l1 / mu_w, 0).astype(dt)
+        w_new = np.maximum(x + rho / mu_w - l1 / mu_w, 0).astype(dt)
         rho += mu_w * (x - w_new)
         # v step: crop-aware data update
         v_new = ((cty + mu_v * hx + xi) / (mask + mu_v)).astype(dt)
         xi += mu_v * (hx - v_new)
         # u step: TV prox, warm-started dual
         z = x + eta / mu_u
-        if p.tv > 0:
-            u_new, pd = tv_prox(z, p.tv / mu_u, p.tv_iters, pd, p.tv_axial_weight, p.tv_isotropic)
+        if tv > 0:
+            u_new, pd = tv_prox(z, tv / mu_u, p.tv_iters, pd, p.tv_axial_weight, p.tv_isotropic)
         else:
             u_new = z
         u_new = u_new.astype(dt)
@@ -82,7 +83,8 @@ def admm(y, psf, params=None, padded_shape=None, dtype=np.float64, workers=None,
         done = ctl.update(it, data2=sq(crop(hx.astype(np.float64), M) - ys), l1=float(np.abs(x).sum()),
                           tv=tv_value(x, p.tv_axial_weight, p.tv_isotropic), dx2=dx2, x2=sq(x),
                           rv2=sq(hx - v_new), dv2=sq(v_new - v), ru2=sq(x - u_new), du2=sq(u_new - u),
-                          rw2=sq(x - w_new), dw2=sq(w_new - w))
+                          rw2=sq(x - w_new), dw2=sq(w_new - w), hx2=sq(hx), v2=sq(v_new), xi2=sq(xi),
+                          w2=sq(w_new), rho2=sq(rho), u2=sq(u_new), eta2=sq(eta))
         v, u, w = v_new, u_new, w_new
         if done:
             break
@@ -90,5 +92,5 @@ def admm(y, psf, params=None, padded_shape=None, dtype=np.float64, workers=None,
     vol = np.maximum(x, 0) * (s_h / s_y)
     return Reconstruction(volume_padded=vol, crop=(slice(oy, oy + M[0]), slice(ox, ox + M[1])),
                           log=ctl.log, scaling={"psf_scale": s_h, "y_scale": s_y},
-                          params=p.as_dict(), info={"device": "numpy", "dtype": dt.name, "stop": ctl.stop,
-                                                    "padded_shape": P})
+                          params=p.as_dict(), info={"device": "numpy", "dtype": dt.name, "padded_shape": P,
+                                                    **ctl.summary()})

@@ -19,15 +19,18 @@ from ..device.runtime import get_runtime
 from ..errors import DeviceError, InputError
 from .forward import ForwardModel, choose_padded_shape, min_padded_shape
 from ..device.fft import get_plan, resolve_backend
-from .control import Control
+from .control import Control, ProblemScale
 from .params import ADMMParams
 from .result import Reconstruction
 from ..device.volume import Volume
 from .memory import check_fits
 
 # Slots of the per-iteration reduction buffer.
-DX2, X2, L1, TV, RW2, SW2, RV2, SV2, DATA2, RU2, SU2 = range(11)
-NSLOTS = 11
+# Slots of the per-iteration reduction buffer, in the order each fused kernel writes them.
+(DX2, X2, L1, TV, RW2, SW2, W2, RHO2,          # update_w
+ RV2, SV2, DATA2, HX2, V2, XI2,                # update_v
+ RU2, SU2, U2, ETA2) = range(18)               # tv_finish
+NSLOTS = 18
 #: elements each work-item of a reduction handles (PoCL on 2 cores: 64 beat 16 and 256 by
 #: 1.1-1.6x; GPUs keep hundreds of work-groups at this size for a few million voxels)
 PER_ITEM = 64
@@ -38,6 +41,12 @@ class ADMMSolver:
     def __init__(self, psf, params: ADMMParams, *, dtype=np.float32, backend="auto", device=None,
                  padded_shape=None, max_slab_planes=None):
         psf = validate.psf_stack(psf, "psf")
+        # a first normalisation in float64 on the host, so that no input scale over- or underflows
+        # in float32 on the device: sum_i (sum |h_i|)^2 bounds max_k sum_i |H_i(k)|^2 from above
+        self.psf_prescale = 1.0
+        if params.normalize:
+            self.psf_prescale = 1.0 / np.sqrt(np.sum(np.abs(psf).reshape(psf.shape[0], -1).sum(axis=1) ** 2))
+        psf = np.asarray(psf, np.float64) * self.psf_prescale
         self.p = params
         self.rt = rt = get_runtime(device)
         self.dtype = rt.check_dtype(dtype)
@@ -76,6 +85,9 @@ class ADMMSolver:
             for hs in m.psf_spectra.slabs:
                 hs *= self.dtype.type(self.psf_scale)
             self.hn2.slabs[0] *= self.dtype.type(self.psf_scale**2)
+        psf_n = psf * self.psf_scale  # the normalised stack the solver sees (float64, host)
+        self.spectral_mean = float(np.sum(psf_n * psf_n))
+        self.psf_scale *= self.psf_prescale  # the whole scale from the caller's PSF
 
         vol = m.new_volume
         self.x, self.g, self.u, self.w, self.eta, self.rho = (vol() for _ in range(6))
@@ -144,6 +156,7 @@ class ADMMSolver:
         if self.p.normalize and not ymax > 0:
             raise InputError("measurement: has no positive value (check the offset subtraction)")
         y_scale = 1.0 / ymax if self.p.normalize else 1.0
+        y_n = np.asarray(y, np.float64) * y_scale   # normalised in float64 before the device sees it
 
         p, m, rt, q, R = self.p, self.model, self.rt, self.rt.queue, self.dtype.type
         I = np.int32  # noqa: E741
@@ -152,11 +165,11 @@ class ADMMSolver:
         oy, ox = m.offsets
         for a in [self.x, self.u, self.w, self.eta, self.rho, self.v, self.xi] + self.pd:
             a.fill(0)
-        sensor = Volume(rt, [(0, 1)], self.M, self.dtype).set((y * y_scale)[None])
+        sensor = Volume(rt, [(0, 1)], self.M, self.dtype).set(y_n[None])
         m.embed_from_sensor(sensor.slabs[0], self.cty.slabs[0])
         bounds = m.bounds
         nslab = len(bounds)
-        ctl = Control(p, callback, callback_every)
+        ctl = Control(p, ProblemScale.of(y_n, self.spectral_mean), callback, callback_every)
         aw, iso = R(p.tv_axial_weight), I(1 if p.tv_isotropic else 0)
         step = R(p.tv_step)
         for it in range(1, p.max_iter + 1):
@@ -170,13 +183,13 @@ class ADMMSolver:
                 has_next = j + 1 < nslab
                 xn = self.x.slabs[j + 1] if has_next else xs
                 self._red("update_w", xs.size, DX2, xs.data, xn.data, I(has_next), gs.data, ws.data,
-                          rs.data, R(p.l1), R(mu_w), aw, iso, I(z1 - z0), I(ny), I(nx))
+                          rs.data, R(ctl.l1), R(mu_w), aw, iso, I(z1 - z0), I(ny), I(nx))
             # ---- v split
             self._red("update_v", ny * nx, RV2, self.v.slabs[0].data, self.xi.slabs[0].data,
                       self.hx.slabs[0].data, self.cty.slabs[0].data, R(mu_v), I(ny), I(nx), I(my), I(mx),
                       I(oy), I(ox))
             # ---- u split (TV)
-            tau = p.tv / mu_u
+            tau = ctl.tv / mu_u
             px_, py_, pz_ = self.pd
             if tau > 0:
                 for _ in range(p.tv_iters):
@@ -210,7 +223,8 @@ class ADMMSolver:
                 raise DeviceError(f"iteration {it}: non-finite residuals or objective on the device; "
                                   "the computation diverged")
             if ctl.update(it, data2=s[DATA2], l1=s[L1], tv=s[TV], dx2=s[DX2], x2=s[X2], rv2=s[RV2],
-                          dv2=s[SV2], ru2=s[RU2], du2=s[SU2], rw2=s[RW2], dw2=s[SW2]):
+                          dv2=s[SV2], ru2=s[RU2], du2=s[SU2], rw2=s[RW2], dw2=s[SW2], hx2=s[HX2], v2=s[V2],
+                          xi2=s[XI2], w2=s[W2], rho2=s[RHO2], u2=s[U2], eta2=s[ETA2]):
                 break
         x = self.x.get()
         vol = np.maximum(x, 0) * (self.psf_scale / y_scale)
@@ -219,52 +233,141 @@ class ADMMSolver:
             scaling={"psf_scale": float(self.psf_scale), "y_scale": float(y_scale)},
             params=p.as_dict(),
             info={"device": rt.caps.name, "platform": rt.caps.platform, "dtype": self.dtype.name,
-                  "backend": self.backend, "padded_shape": self.P, "slabs": len(bounds), "stop": ctl.stop,
+                  "backend": self.backend, "padded_shape": self.P, "slabs": len(bounds), **ctl.summary(),
                   "device_bytes": int(self.allocated_bytes)})
 
 
-def reconstruct(measurement, psf, *, dtype=np.float32, backend="auto", device=None,
-                padded_shape=None, max_slab_planes=None, callback=None, callback_every=1,
-                voxel_size_um=None, depths_um=None, **params) -> Reconstruction:
+_D = ADMMParams()
+
+
+def reconstruct(measurement, psf, *,
+                l1: float | None = _D.l1, tv: float | None = _D.tv, tv_axial_weight: float = _D.tv_axial_weight,
+                tv_isotropic: bool = _D.tv_isotropic, tv_iters: int = _D.tv_iters,
+                max_iter: int = _D.max_iter, tol: float = _D.tol, tol_change: float = _D.tol_change,
+                patience: int = _D.patience, penalty: str = _D.penalty,
+                mu_v: float | None = _D.mu_v, mu_u: float | None = _D.mu_u, mu_w: float | None = _D.mu_w,
+                l1_noise_ratio: float = _D.l1_noise_ratio, tv_noise_ratio: float = _D.tv_noise_ratio,
+                balance_factor: float = _D.balance_factor, balance_ratio: float = _D.balance_ratio,
+                adapt_ratio: float = _D.adapt_ratio,
+                adapt_max_step: float = _D.adapt_max_step, adapt_until: int = _D.adapt_until,
+                mu_range: float = _D.mu_range, normalize: bool = _D.normalize,
+                dtype=np.float32, backend: str = "auto", device=None, padded_shape=None,
+                max_slab_planes: int | None = None, voxel_size_um=None, depths_um=None,
+                callback=None, callback_every: int = 1) -> Reconstruction:
     """Reconstruct a 3D volume from one CM2 measurement (paper Eq. 4) on an OpenCL device.
+
+    Solves ``min_x 1/2 ||C H x - y||^2 + l1 ||x||_1 + tv TV_3D(x)`` subject to ``x >= 0`` by ADMM,
+    on the normalised problem: y scaled to max 1 and the PSFs to ||H|| = 1 (in float64 on the host),
+    so weights and penalties mean the same on every dataset; the volume is scaled back to the
+    measurement's units.
 
     Parameters
     ----------
-    measurement : (My, Mx) float array, camera offset removed.
-    psf : (nz, My, Mx) float array, one PSF per depth plane on the same sensor grid.
+    measurement : (My, Mx) array
+        The camera image, camera offset (dark level) removed. Float, or integer camera data
+        (uint8, uint16, ...), which is converted to float64.
+    psf : (nz, My, Mx) or (My, Mx) array
+        One PSF per depth plane, on the measurement's sensor grid, offset removed; every plane
+        must carry some light. Float or integer.
+    l1 : float or None
+        Weight of the l1 (sparsity) term on the normalised problem. None (default):
+        ``l1_noise_ratio`` times the measurement's estimated noise level (``rec.info['noise_sigma']``).
+    tv : float or None
+        Weight of 3D total variation on the normalised problem; 0 disables TV. None (default):
+        ``tv_noise_ratio`` times the noise level.
+    tv_axial_weight : float
+        Weight of axial differences in TV relative to lateral ones (dimensionless; non-cubic
+        voxels: e.g. dx / dz).
+    tv_isotropic : bool
+        Isotropic (default) or anisotropic TV.
+    tv_iters : int
+        Chambolle dual iterations of the TV prox per ADMM iteration (warm-started), 1..1000.
+    max_iter : int
+        Iteration cap.
+    tol, tol_change, patience : float, float, int
+        Stop when every active split's relative primal and dual residuals are below ``tol`` and the
+        relative change of x is below ``tol_change``, for ``patience`` consecutive iterations
+        (Boyd et al. 2011, sec. 3.3). ``tol=0`` runs to ``max_iter``.
+    penalty : {'adaptive', 'balance', 'fixed'}
+        Penalty policy: 'adaptive' (default) starts from the problem's scale and rebalances a split's
+        penalty by sqrt(primal / dual residual), bounded by ``adapt_max_step``, when the two differ by
+        more than ``adapt_ratio`` (checked at iterations 1..10, then every 10th, up to ``adapt_until``,
+        within ``mu_range`` of the start); 'balance' is the CM2 authors' residual balancing
+        (``balance_factor`` steps when residuals differ by more than ``balance_ratio``); 'fixed'
+        keeps the initial penalties.
+    balance_factor, balance_ratio, adapt_ratio, adapt_max_step, adapt_until, mu_range : float, ..., int, float
+        Knobs of the penalty policies, as described under ``penalty``.
+    mu_v, mu_u, mu_w : float or None
+        Initial penalties of the splits v = Hx, u = x (TV), w = x (l1); None: from the problem's
+        scale (see :class:`cm2cl.solver.control.ProblemScale`).
+    l1_noise_ratio, tv_noise_ratio : float
+        Default weights relative to the noise level (when ``l1`` / ``tv`` are None).
+    normalize : bool
+        Normalise y and H as above (default True).
     dtype : float32 (default) or float64 (devices with fp64 only).
-    backend : FFT backend, 'auto', 'vkfft' or 'reikna'.
-    device : index, name fragment, pyopencl Device or Runtime (default: see cm2cl.device).
-    padded_shape : padded grid (Py, Px) >= 2M - 1 (default: the backend's fast size).
-    callback : called with the log row every `callback_every` iterations.
-    voxel_size_um : optional object-space voxel size (dz, dy, dx) in um, carried to the result.
-    depths_um : optional depth of each PSF plane in um, carried to the result.
-    **params : fields of :class:`cm2cl.params.ADMMParams` (l1, tv, tv_axial_weight, max_iter, tol, ...).
+    backend : {'auto', 'vkfft', 'reikna'}
+        FFT backend.
+    device : int, str, pyopencl Device or Runtime, optional
+        Device index or name fragment (default: ``CM2CL_DEVICE``, else the best device).
+    padded_shape : (Py, Px), optional
+        Object grid, >= 2M - 1 (default: the FFT backend's fast size).
+    max_slab_planes : int, optional
+        Cap on the depth planes per device buffer.
+    voxel_size_um : (dz, dy, dx) in um, optional
+        Object-space voxel size, carried to ``rec.voxel_size_um``.
+    depths_um : (nz,) in um, optional
+        Depth of each PSF plane, carried to ``rec.depths_um``.
+    callback, callback_every : callable, int, optional
+        ``callback(row)`` with each log row (a dict) every ``callback_every`` iterations.
 
     Returns
     -------
-    Reconstruction with ``.volume`` (nz, My, Mx) on the sensor field of view, ``.volume_padded``,
-    ``.log`` and ``.scaling``.
+    Reconstruction
+        ``.volume`` (nz, My, Mx) on the sensor field of view, ``.volume_padded`` (nz, Py, Px),
+        ``.history`` (the log as arrays: objective, residuals, penalties, seconds), ``.info``
+        (device, why it stopped, whether it converged, the weights and noise level used),
+        ``.scaling``.
+
+    Examples
+    --------
+    >>> import numpy as np, cm2cl
+    >>> psf = np.zeros((2, 32, 40)); psf[0, 16, 20] = psf[1, 14, 20] = psf[1, 18, 20] = 1.0
+    >>> x = np.zeros((2, 32, 40)); x[1, 10, 12] = 5.0
+    >>> y = psf[1, 14, 20] * np.roll(x[1], -2, 0) + psf[1, 18, 20] * np.roll(x[1], 2, 0)
+    >>> rec = cm2cl.reconstruct(y, psf, max_iter=300)
+    >>> tuple(int(i) for i in np.unravel_index(rec.volume.argmax(), rec.volume.shape))
+    (1, 10, 12)
+    >>> rec.history["objective"].shape == (rec.iterations,)
+    True
     """
-    prm = ADMMParams.from_kwargs(**params)
-    psf = validate.psf_stack(psf, "psf")
-    y = validate.real_array(measurement, "measurement", ndims=(2,))
+    prm = ADMMParams(l1=l1, tv=tv, tv_axial_weight=tv_axial_weight, tv_isotropic=tv_isotropic,
+                     tv_iters=tv_iters, max_iter=max_iter, tol=tol, tol_change=tol_change, patience=patience,
+                     penalty=penalty, mu_v=mu_v, mu_u=mu_u, mu_w=mu_w, l1_noise_ratio=l1_noise_ratio,
+                     tv_noise_ratio=tv_noise_ratio, balance_factor=balance_factor, balance_ratio=balance_ratio,
+                     adapt_ratio=adapt_ratio,
+                     adapt_max_step=adapt_max_step, adapt_until=adapt_until, mu_range=mu_range,
+                     normalize=normalize)
+    psf = validate.psf_stack(validate.image_array(psf, "psf"), "psf")
+    y = validate.real_array(validate.image_array(measurement, "measurement", ndims=(2,)), "measurement", ndims=(2,))
     if y.shape != psf.shape[1:]:
         raise InputError(f"measurement: shape {y.shape} does not match the PSF's sensor grid "
                          f"{psf.shape[1:]} (psf shape {psf.shape})")
-    solver = ADMMSolver(psf, prm, dtype=dtype, backend=backend, device=device,
-                        padded_shape=padded_shape, max_slab_planes=max_slab_planes)
-    rec = solver.solve(y, callback=callback, callback_every=callback_every)
+    vs = d = None
     if voxel_size_um is not None:
-        vs = tuple(float(v) for v in voxel_size_um)
+        try:
+            vs = tuple(float(v) for v in voxel_size_um)
+        except (TypeError, ValueError):
+            vs = ()
         if len(vs) != 3 or not all(np.isfinite(v) and v > 0 for v in vs):
             raise InputError(f"voxel_size_um: expected 3 positive numbers (dz, dy, dx), got {voxel_size_um!r}")
-        rec.voxel_size_um = vs
     if depths_um is not None:
         d = np.asarray(depths_um, float).ravel()
         if d.size != psf.shape[0] or not np.all(np.isfinite(d)):
             raise InputError(f"depths_um: expected {psf.shape[0]} finite depths, got {np.shape(depths_um)}")
-        rec.depths_um = d
+    solver = ADMMSolver(psf, prm, dtype=dtype, backend=backend, device=device,
+                        padded_shape=padded_shape, max_slab_planes=max_slab_planes)
+    rec = solver.solve(y, callback=callback, callback_every=callback_every)
+    rec.voxel_size_um, rec.depths_um = vs, d
     return rec
 
 

@@ -12,17 +12,30 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, fields
 
-import numpy as np
 
 from ..errors import InputError
+from ..validate import Checker
+
+
+#: penalty policies: "adaptive" (default: initial penalties from the problem's scale, then residual
+#: balancing with steps sqrt(primal/dual) up to ``adapt_max_step`` on large imbalances), "balance" (the
+#: CM2 authors' x``balance_factor`` steps), "fixed" (the initial penalties throughout)
+PENALTY_POLICIES = ("adaptive", "balance", "fixed")
 
 
 @dataclass(frozen=True)
 class ADMMParams:
-    #: weight of the l1 (sparsity) term, on the normalised problem
-    l1: float = 1e-3
-    #: weight of the 3D total variation term, on the normalised problem (0 disables TV)
-    tv: float = 1e-3
+    #: weight of the l1 (sparsity) term on the normalised problem; None = ``l1_noise_ratio`` times the
+    #: measurement's estimated noise level (see :func:`cm2cl.solver.control.noise_sigma`)
+    l1: float | None = None
+    #: weight of the 3D total variation term on the normalised problem (0 disables TV); None =
+    #: ``tv_noise_ratio`` times the noise level
+    tv: float | None = None
+    #: default weights relative to the noise level sigma of the normalised measurement (max 1). The
+    #: ratio 1 reproduces the former fixed default 1e-3 at the noise level of the real DiffuserCam
+    #: data (sigma ~ 1.0e-3 and 1.1e-3 of the maximum); a measurement 10x noisier gets 10x the weight.
+    l1_noise_ratio: float = 1.0
+    tv_noise_ratio: float = 1.0
     #: TV weight of the axial difference relative to the lateral ones (voxels are not cubic:
     #: dz >> dx makes axial neighbours less alike; a common choice is dx / dz)
     tv_axial_weight: float = 1.0
@@ -30,39 +43,40 @@ class ADMMParams:
     tv_isotropic: bool = True
     #: dual (Chambolle) iterations of the TV prox per outer iteration, warm-started
     tv_iters: int = 2
-    #: initial ADMM penalties of the splits v = Hx, u = x (TV), w = x (l1 + non-negativity)
-    mu_v: float = 1.0
-    mu_u: float = 1.0
-    mu_w: float = 1.0
-    #: residual balancing: multiply/divide a penalty by `balance_factor` when its primal and dual
-    #: residuals differ by more than `balance_ratio` (the CM2 authors' 1.1 and 1.5); 0 disables
+    #: initial ADMM penalties of the splits v = Hx, u = x (TV), w = x (l1 + non-negativity); None =
+    #: from the problem's scale: mu_v = 1 (the data term's curvature on the ||H|| = 1 scale) and
+    #: mu_u = mu_w = mu_v mean_k sum_i |H_i(k)|^2, the mean of H^T H's spectrum (its maximum is 1)
+    mu_v: float | None = None
+    mu_u: float | None = None
+    mu_w: float | None = None
+    #: how penalties change between iterations (see PENALTY_POLICIES)
+    penalty: str = "adaptive"
+    #: "balance": multiply/divide a penalty by `balance_factor` when its primal and dual residuals differ
+    #: by more than `balance_ratio` (the CM2 authors' 1.1 and 1.5). "adaptive": when a split's primal and
+    #: dual residuals differ by more than `adapt_ratio`, multiply its penalty by sqrt(ratio),
+    #: bounded by `adapt_max_step`; checked at iterations 1..10, then every 10th, up to `adapt_until`
+    #: (then the penalties stay, and ADMM's convergence with fixed penalties holds). The initial penalties
+    #: from the problem's scale are near the best fixed ones on the data measured (docs/accuracy_vs_time.md),
+    #: so only a large imbalance (a poor start, or user penalties far off) moves them.
     balance_factor: float = 1.1
     balance_ratio: float = 1.5
-    #: stop when ||x_k - x_k-1|| / ||x_k|| < tol for `patience` consecutive iterations
+    adapt_ratio: float = 100.0
+    adapt_max_step: float = 3.0
+    adapt_until: int = 100
+    #: penalties stay within [initial / mu_range, initial * mu_range]
+    mu_range: float = 1e4
+    #: stop when every active split's relative primal and dual residuals (Boyd et al. 2011, sec. 3.3:
+    #: ||r|| <= tol max(||Hx||, ||v||), ||s|| <= tol ||dual||) are below `tol` and the relative change
+    #: of x is below `tol_change`, for `patience` consecutive iterations
     tol: float = 1e-3
-    patience: int = 4
-    #: optional: also stop when every split's primal and dual residual are below this
-    tol_residual: float = 0.0
+    tol_change: float = 1e-3
+    patience: int = 3
     max_iter: int = 200
     #: scale y by 1/max(y) and the PSFs so that ||H|| = 1; the result is scaled back
     normalize: bool = True
 
     def __post_init__(self):
-        for name in ("l1", "tv"):
-            _check(name, getattr(self, name), allow_zero=True)
-        for name in ("tv_axial_weight", "mu_v", "mu_u", "mu_w"):
-            _check(name, getattr(self, name))
-        _check("tol", self.tol, allow_zero=True)
-        _check("tol_residual", self.tol_residual, allow_zero=True)
-        if self.balance_factor != 0:
-            if not (np.isfinite(self.balance_factor) and self.balance_factor > 1):
-                raise InputError(f"balance_factor: must be > 1 (or 0 to disable), got {self.balance_factor!r}")
-            if not (np.isfinite(self.balance_ratio) and self.balance_ratio >= 1):
-                raise InputError(f"balance_ratio: must be >= 1, got {self.balance_ratio!r}")
-        for name in ("tv_iters", "patience", "max_iter"):
-            v = getattr(self, name)
-            if not isinstance(v, (int, np.integer)) or v < 1:
-                raise InputError(f"{name}: must be an integer >= 1, got {v!r}")
+        Checker().fields(self, _SPECS)
 
     @classmethod
     def from_kwargs(cls, **kw) -> "ADMMParams":
@@ -81,21 +95,20 @@ class ADMMParams:
         return 1.0 / (4.0 * (2.0 + self.tv_axial_weight ** 2))
 
 
-def _check(name, v, allow_zero=False):
-    try:
-        f = float(v)
-    except (TypeError, ValueError) as exc:
-        raise InputError(f"{name}: {v!r} is not a number") from exc
-    if not np.isfinite(f) or f < 0 or (f == 0 and not allow_zero):
-        raise InputError(f"{name}: must be finite and {'>= 0' if allow_zero else '> 0'}, got {v!r}")
-
-
-def balance(mu: float, primal: float, dual: float, p: ADMMParams) -> float:
-    """Residual balancing of one penalty (Boyd et al. 2011, sec. 3.4.1)."""
-    if p.balance_factor == 0:
-        return mu
-    if primal > p.balance_ratio * dual:
-        return mu * p.balance_factor
-    if dual > p.balance_ratio * primal:
-        return mu / p.balance_factor
-    return mu
+_NONNEG = {"type": "float", "min": 0}
+_POS = {"type": "float", "min": 0, "exclusive": True}
+_SPECS = {
+    "l1": _NONNEG, "tv": _NONNEG, "l1_noise_ratio": _NONNEG, "tv_noise_ratio": _NONNEG,
+    "tv_axial_weight": _POS, "tv_isotropic": {"type": "bool"}, "tv_iters": {"type": "int", "min": 1, "max": 1000},
+    "mu_v": _POS, "mu_u": _POS, "mu_w": _POS,
+    "penalty": {"type": "str", "choices": PENALTY_POLICIES},
+    "balance_factor": {"type": "float", "min": 1, "exclusive": True},
+    "balance_ratio": {"type": "float", "min": 1},
+    "adapt_ratio": {"type": "float", "min": 1},
+    "adapt_max_step": {"type": "float", "min": 1, "exclusive": True},
+    "adapt_until": {"type": "int", "min": 0},
+    "mu_range": {"type": "float", "min": 1},
+    "tol": _NONNEG, "tol_change": _NONNEG,
+    "patience": {"type": "int", "min": 1}, "max_iter": {"type": "int", "min": 1},
+    "normalize": {"type": "bool"},
+}
