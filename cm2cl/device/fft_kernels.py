@@ -1,0 +1,240 @@
+"""Plans for cm2cl's own FFT kernels (``kernels/fft.cl``): the "cl" backend of :mod:`.fft`.
+
+How the kernels are made: one generic source, specialised per line length by ``-D`` defines that
+this module computes (the line length ``FFT_N``, and for each pass its radix ``FFT_R<p>`` and
+sub-transform length ``FFT_S<p>``), so every pass is unrolled with constant radix and strides.
+One program per (line length, row mode, columns per group, real type), built lazily and cached on
+the runtime like every other program.
+
+A 2D real-to-complex transform of (batch, py, px) reals gives (batch, py, px//2 + 1) complex (the
+layout of VkFFT and numpy's rfft2):
+
+* rows: even px as the complex transform of px/2 points (x_2i + i x_2i+1) untangled in the same
+  kernel; odd px as the complex transform of the line widened to complex;
+* columns: in place on the spectrum, ``FFT_C`` neighbouring columns per work-group so that global
+  reads and writes are coalesced.
+
+Where a line (or a block of columns) fits in local memory, one kernel does all its passes (one
+read and one write of global memory per dimension); otherwise a kernel per radix pass goes
+through global memory (needs a scratch buffer of one spectrum).  Radices 8, 4, 2, 3, 5, 7, 11
+and 13; other prime factors are refused.  Twiddles are computed in double on the host.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from . import kernels
+from ..errors import InputError
+
+__all__ = ["RADICES", "factor", "ClPlan"]
+
+#: radices in the order the passes use them; 8 before 4 before 2 (fewer passes)
+RADICES = (8, 4, 2, 3, 5, 7, 11, 13)
+MAX_PASSES = 12
+
+
+def factor(n: int, what: str = "fft size") -> list[int]:
+    """The radices of the passes of an n-point transform (product n); InputError if n has a prime
+    factor above 13."""
+    n = int(n)
+    if n < 1:
+        raise InputError(f"{what}: {n} is not a positive length")
+    out, m = [], n
+    for r in RADICES:
+        while m % r == 0:
+            out.append(r)
+            m //= r
+    if m != 1:
+        raise InputError(f"{what}: {n} has the prime factor {_smallest_factor(m)} > 13, which the 'cl' FFT "
+                         "backend does not transform; pad to a 2/3/5/7-smooth size (fft.good_size)")
+    if len(out) > MAX_PASSES:
+        raise InputError(f"{what}: {n} needs {len(out)} radix passes (at most {MAX_PASSES})")
+    return out
+
+
+def _smallest_factor(m: int) -> int:
+    p = 2
+    while m % p:
+        p += 1
+    return p
+
+
+def _line_defines(n: int) -> dict:
+    radices = factor(n)
+    d = {"FFT_N": n, "FFT_NPASS": len(radices)}
+    ns = 1
+    for p, r in enumerate(radices):
+        d[f"FFT_R{p}"] = r
+        d[f"FFT_S{p}"] = ns
+        ns *= r
+    return d
+
+
+def _cplx_item(dtype) -> int:
+    return 2 * np.dtype(dtype).itemsize
+
+
+class ClPlan:
+    """Batched 2D real <-> complex FFT of (batch, py, px) with cm2cl's kernels.
+
+    ``local_limit`` (bytes; default the device's local memory) caps the local memory a line
+    kernel may use; lines that do not fit go through the pass kernels (tests use it to force them).
+    """
+
+    def __init__(self, rt, real_shape, dtype, local_limit: int | None = None):
+        import pyopencl as cl
+        import pyopencl.array as cla
+
+        self.rt = rt
+        self.dtype = np.dtype(dtype)
+        self.cdtype = np.dtype(np.complex64 if self.dtype == np.float32 else np.complex128)
+        b, py, px = (int(s) for s in real_shape)
+        if min(b, py, px) < 1:
+            raise InputError(f"fft shape: {real_shape} has an empty axis")
+        self.batch, self.py, self.px = b, py, px
+        self.half = px % 2 == 0
+        self.nrow = px // 2 if self.half else px  # complex length of a row transform
+        self.w = px // 2 + 1
+        self.spec_shape = (b, py, self.w)
+        factor(self.nrow, f"fft size px={px}" + (f" (rows as {self.nrow} complex points)" if self.half else ""))
+        factor(py, f"fft size py={py}")
+        limit = rt.caps.local_mem if local_limit is None else int(local_limit)
+        limit = min(limit, rt.caps.local_mem) - 256  # room for the kernel's own locals
+        item = _cplx_item(self.dtype)
+
+        self.tw_row = self._table(self.nrow)
+        self.tw_col = self._table(py)
+        k = np.arange(self.nrow + 1, dtype=np.float64)
+        self.twr = cla.to_device(rt.queue, np.exp(-1j * np.pi * k / self.nrow).astype(self.cdtype))
+        self._scratch = None
+
+        # rows: one line per work-group
+        self.rows_local = 2 * self.nrow * item <= limit
+        if self.rows_local:
+            defs = _line_defines(self.nrow) | {"FFT_C": 1}
+            if self.half:
+                defs["FFT_HALF"] = 1
+            self._r2c = kernels.kernel(rt, "fft.cl", "rows_r2c", self.dtype, defs)
+            self._c2r = kernels.kernel(rt, "fft.cl", "rows_c2r", self.dtype, defs)
+            cap = max(1, min(self.nrow // 2, 256))
+            self._row_local = min(kernels.work_group_size(rt, self._r2c, cap),
+                                  kernels.work_group_size(rt, self._c2r, cap))
+        # columns: FFT_C columns per work-group, the largest power of two <= 16 that fits
+        self.col_c = 16
+        while self.col_c > 1 and (2 * py * self.col_c * item > limit or self.col_c > 2 * self.w):
+            self.col_c //= 2
+        self.cols_local = 2 * py * self.col_c * item <= limit and (self.col_c >= 4 or self.w < 4
+                                                                   or rt.caps.kind == "CPU")
+        if self.cols_local:
+            while True:  # the local size in dimension 0 is FFT_C: rebuild if the kernel allows fewer
+                defs = _line_defines(py) | {"FFT_C": self.col_c}
+                self._k_cols = kernels.kernel(rt, "fft.cl", "cols", self.dtype, defs)
+                L = kernels.work_group_size(rt, self._k_cols, 256)
+                if L >= self.col_c:
+                    break
+                self.col_c = L
+            self._cols_t = max(1, min(L // self.col_c, max(1, py // 2)))
+        if not (self.rows_local and self.cols_local):
+            self._pack = {name: kernels.kernel(rt, "fft.cl", name, self.dtype)
+                          for name in ("pack_real", "untangle", "tangle", "unpack_real")}
+        self._cl = cl
+
+    # ---- tables and scratch -------------------------------------------------------------------
+    def _table(self, n: int):
+        """exp(-2 pi i m / n), m < n, computed in double, cached per (n, type) on the runtime."""
+        import pyopencl.array as cla
+
+        def make():
+            m = np.arange(n, dtype=np.float64)
+            return cla.to_device(self.rt.queue, np.exp(-2j * np.pi * m / n).astype(self.cdtype))
+
+        return self.rt.cached(("fft_twiddles", n, self.cdtype.str), make)
+
+    @property
+    def scratch_bytes(self) -> int:
+        """Device bytes this plan allocates besides its tables: none when every line fits in local
+        memory, else two buffers of max(row lines, spectrum) complex values for the pass path."""
+        if self.rows_local and self.cols_local:
+            return 0
+        return 2 * self._scratch_len() * self.cdtype.itemsize
+
+    def _scratch_len(self) -> int:
+        return max(self.batch * self.py * self.nrow, self.batch * self.py * self.w)
+
+    def _scratch_buffers(self):
+        import pyopencl.array as cla
+
+        if self._scratch is None:
+            n = self._scratch_len()
+            self._scratch = (cla.empty(self.rt.queue, (n,), self.cdtype), cla.empty(self.rt.queue, (n,), self.cdtype))
+        return self._scratch
+
+    # ---- passes through global memory ---------------------------------------------------------
+    def _pass_kernel(self, name, r):
+        return kernels.kernel(self.rt, "fft.cl", name, self.dtype, {"FFT_R": r})
+
+    def _rows_passes(self, a, b, lines):
+        """Transform `lines` lines of nrow complex in a (forward); returns the buffer holding them."""
+        n, ns = self.nrow, 1
+        for r in factor(n):
+            k = self._pass_kernel("pass_rows", r)
+            kernels.launch(self.rt, k, (n // r, lines), b.data, a.data, np.int32(n), np.int32(ns),
+                           self.tw_row.data)
+            a, b, ns = b, a, ns * r
+        return a
+
+    def _cols(self, spec, inverse: bool):
+        """Columns of the spectrum in place (inverse: conjugated in and out, unnormalised)."""
+        n = self.py
+        if self.cols_local:
+            g = (-(-self.w // self.col_c) * self.col_c, self._cols_t, self.batch)
+            self._k_cols(self.rt.queue, g, (self.col_c, self._cols_t, 1), spec.data, np.int32(self.w),
+                         np.int32(inverse), self.tw_col.data)
+            return
+        radices = factor(n)
+        a, b, ns = spec.data, self._scratch_buffers()[0].data, 1
+        for p, r in enumerate(radices):
+            k = self._pass_kernel("pass_cols", r)
+            first, last = p == 0, p == len(radices) - 1
+            kernels.launch(self.rt, k, (self.w, n // r, self.batch), b, a, np.int32(n), np.int32(self.w),
+                           np.int32(ns), np.int32(inverse and first), np.int32(inverse and last),
+                           self.tw_col.data)
+            a, b, ns = b, a, ns * r
+        if a is not spec.data:
+            self._cl.enqueue_copy(self.rt.queue, spec.data, a, byte_count=spec.nbytes)
+
+    # ---- the transforms -------------------------------------------------------------------------
+    def forward(self, src, dst):
+        """dst (batch, py, px//2+1) complex <- 2D FFT of src (batch, py, px) real."""
+        lines = self.batch * self.py
+        if self.rows_local:
+            T = self._row_local
+            self._r2c(self.rt.queue, (T, lines), (T, 1), dst.data, src.data, self.tw_row.data, self.twr.data)
+        else:
+            a, b = self._scratch_buffers()
+            kernels.launch(self.rt, self._pack["pack_real"], (self.nrow, lines), a.data, src.data,
+                           np.int32(self.nrow), np.int32(self.half))
+            z = self._rows_passes(a, b, lines)
+            kernels.launch(self.rt, self._pack["untangle"], (self.w, lines), dst.data, z.data,
+                           np.int32(self.nrow), np.int32(self.half), self.twr.data)
+        self._cols(dst, False)
+        return dst
+
+    def inverse(self, src, dst):
+        """dst (batch, py, px) real <- normalised inverse 2D FFT of src (overwritten)."""
+        self._cols(src, True)
+        lines = self.batch * self.py
+        scale = self.dtype.type(1.0 / (self.nrow * self.py))
+        if self.rows_local:
+            T = self._row_local
+            self._c2r(self.rt.queue, (T, lines), (T, 1), dst.data, src.data, self.tw_row.data, self.twr.data,
+                      scale)
+        else:
+            a, b = self._scratch_buffers()
+            kernels.launch(self.rt, self._pack["tangle"], (self.nrow, lines), a.data, src.data,
+                           np.int32(self.nrow), np.int32(self.half), self.twr.data)
+            z = self._rows_passes(a, b, lines)
+            kernels.launch(self.rt, self._pack["unpack_real"], (self.nrow, lines), dst.data, z.data,
+                           np.int32(self.nrow), np.int32(self.half), scale)
+        return dst
