@@ -41,7 +41,7 @@ class ADMMSolver:
         self.p = params
         self.rt = rt = get_runtime(device)
         self.dtype = rt.check_dtype(dtype)
-        self.backend = resolve_backend(backend)
+        self.backend = resolve_backend(backend, rt)
         sensor = psf.shape[1:]
         P = tuple(padded_shape) if padded_shape is not None else choose_padded_shape(sensor, self.backend)
         if any(p < n for p, n in zip(P, min_padded_shape(sensor))):
@@ -233,7 +233,7 @@ def reconstruct(measurement, psf, *, dtype=np.float32, backend="auto", device=No
     measurement : (My, Mx) float array, camera offset removed.
     psf : (nz, My, Mx) float array, one PSF per depth plane on the same sensor grid.
     dtype : float32 (default) or float64 (devices with fp64 only).
-    backend : FFT backend, 'auto', 'vkfft' or 'reikna'.
+    backend : FFT backend, 'auto', 'cl', 'vkfft' or 'reikna' (see cm2cl.device.fft).
     device : index, name fragment, pyopencl Device or Runtime (default: see cm2cl.device).
     padded_shape : padded grid (Py, Px) >= 2M - 1 (default: the backend's fast size).
     callback : called with the log row every `callback_every` iterations.
