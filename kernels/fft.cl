@@ -174,36 +174,45 @@ inline __local cplx_t *fft_line(__local cplx_t *a, __local cplx_t *b, const int 
     return (FFT_NPASS % 2) ? b : a;
 }
 
-/* Rows, real -> spectrum.  src: lines of `px` reals (row pitch px); dst: lines of px/2 + 1
+/* Rows, real -> spectrum.  src: `lines` lines of `px` reals (row pitch px); dst: lines of px/2 + 1
  * complex.  FFT_HALF: px = 2 FFT_N even, transformed as FFT_N complex points z_i = x_2i + i x_2i+1
  * then untangled with twr[k] = exp(-pi i k / FFT_N), k <= FFT_N; else px = FFT_N (odd), the line is
- * widened to complex.  One work-group per line (group id 1), any local size in dimension 0. */
+ * widened to complex.  FFT_C lines per work-group: local id 0 picks the line (CPUs vectorise
+ * across lines), local id 1 walks the butterflies (GPUs: FFT_C = 1 and a wide dimension 1). */
+#define ROW_SETUP                                                                               \
+    __local cplx_t a_[FFT_N * FFT_C], b_[FFT_N * FFT_C];                                        \
+    const int c = get_local_id(0), stride = FFT_C;                                              \
+    const int j0 = get_local_id(1), js = get_local_size(1);                                     \
+    const size_t line_ = (size_t)get_group_id(0) * FFT_C + c;                                   \
+    const int ok = line_ < (size_t)lines;                                                       \
+    const size_t line = ok ? line_ : 0;                                                         \
+    __local cplx_t *a = a_ + c, *b = b_ + c;
+
 __kernel void rows_r2c(__global cplx_t *dst, __global const real_t *src,
-                       __global const cplx_t *tw, __global const cplx_t *twr) {
-    __local cplx_t a[FFT_N], b[FFT_N];
-    const int j0 = get_local_id(0), js = get_local_size(0), stride = 1;
-    const size_t line = get_group_id(1);
+                       __global const cplx_t *tw, __global const cplx_t *twr, const int lines) {
+    ROW_SETUP
 #ifdef FFT_HALF
     const int px = 2 * FFT_N, w = FFT_N + 1;
     __global const real_t *x = src + line * px;
-    for (int i = j0; i < FFT_N; i += js) a[i] = vload2(i, x);
+    for (int i = j0; i < FFT_N; i += js) a[i * stride] = vload2(i, x);
 #else
     const int px = FFT_N, w = FFT_N / 2 + 1;
     __global const real_t *x = src + line * px;
-    for (int i = j0; i < FFT_N; i += js) a[i] = (cplx_t)(x[i], 0);
+    for (int i = j0; i < FFT_N; i += js) a[i * stride] = (cplx_t)(x[i], 0);
 #endif
     barrier(CLK_LOCAL_MEM_FENCE);
     __local const cplx_t *z = fft_line(a, b, stride, j0, js, tw);
+    if (!ok) return;
     __global cplx_t *y = dst + line * w;
 #ifdef FFT_HALF
     for (int k = j0; k <= FFT_N; k += js) {
-        const cplx_t zk = z[k % FFT_N], zc = z[(FFT_N - k) % FFT_N];
+        const cplx_t zk = z[(k % FFT_N) * stride], zc = z[((FFT_N - k) % FFT_N) * stride];
         const cplx_t e = (cplx_t)(zk.x + zc.x, zk.y - zc.y), o = (cplx_t)(zk.x - zc.x, zk.y + zc.y);
         /* X_k = (e - i w^k o) / 2, e = Z_k + conj Z_{N-k}, o = Z_k - conj Z_{N-k} */
         y[k] = (real_t)0.5 * (e + mul_mi(cmul(twr[k], o)));
     }
 #else
-    for (int k = j0; k < w; k += js) y[k] = z[k];
+    for (int k = j0; k < w; k += js) y[k] = z[k * stride];
 #endif
 }
 
@@ -211,10 +220,9 @@ __kernel void rows_r2c(__global cplx_t *dst, __global const real_t *src,
  * complex, Hermitian; dst: lines of px reals).  The imaginary parts that a Hermitian line cannot
  * have (k = 0, and k = px/2 for even px) are ignored, as numpy's irfft does. */
 __kernel void rows_c2r(__global real_t *dst, __global const cplx_t *src,
-                       __global const cplx_t *tw, __global const cplx_t *twr, const real_t scale) {
-    __local cplx_t a[FFT_N], b[FFT_N];
-    const int j0 = get_local_id(0), js = get_local_size(0), stride = 1;
-    const size_t line = get_group_id(1);
+                       __global const cplx_t *tw, __global const cplx_t *twr, const real_t scale,
+                       const int lines) {
+    ROW_SETUP
 #ifdef FFT_HALF
     const int px = 2 * FFT_N, w = FFT_N + 1;
     __global const cplx_t *X = src + line * w;
@@ -225,7 +233,7 @@ __kernel void rows_c2r(__global real_t *dst, __global const cplx_t *src,
         const cplx_t o = cmulc(twr[k], d);   /* conj(w^k) (X_k - conj X_{N-k}) */
         /* Z_k = (e + i o) / 2, stored conjugated for the inverse */
         const cplx_t zk = (cplx_t)(e.x - o.y, e.y + o.x);
-        a[k] = (cplx_t)(zk.x, -zk.y);
+        a[k * stride] = (cplx_t)(zk.x, -zk.y);
     }
 #else
     const int px = FFT_N, w = FFT_N / 2 + 1;
@@ -233,20 +241,21 @@ __kernel void rows_c2r(__global real_t *dst, __global const cplx_t *src,
     for (int k = j0; k < FFT_N; k += js) {
         cplx_t v = (k < w) ? X[k] : X[FFT_N - k];
         if (k == 0) v.y = 0;
-        a[k] = (k < w) ? (cplx_t)(v.x, -v.y) : v;   /* conj of the Hermitian extension */
+        a[k * stride] = (k < w) ? (cplx_t)(v.x, -v.y) : v;   /* conj of the Hermitian extension */
     }
 #endif
     barrier(CLK_LOCAL_MEM_FENCE);
     __local const cplx_t *z = fft_line(a, b, stride, j0, js, tw);
+    if (!ok) return;
     __global real_t *x = dst + line * px;
 #ifdef FFT_HALF
     const real_t h = (real_t)0.5 * scale;   /* Z_k carried a factor 2 */
     for (int i = j0; i < FFT_N; i += js) {
-        const cplx_t v = z[i];
+        const cplx_t v = z[i * stride];
         vstore2((REAL2)(h * v.x, -h * v.y), i, x);
     }
 #else
-    for (int i = j0; i < FFT_N; i += js) x[i] = scale * z[i].x;
+    for (int i = j0; i < FFT_N; i += js) x[i] = scale * z[i * stride].x;
 #endif
 }
 

@@ -21,10 +21,10 @@ MAX_ELEMENTS = 4 * 2**20  # per example, to keep the test time small
 SMOOTH = sorted(n for n in range(1, 4097) if fft._is_smooth(n))
 
 
-def errors(rt, x, dtype, local_limit=None):
+def errors(rt, x, dtype, local_limit=None, group=None):
     """(forward, inverse) relative errors of a ClPlan on x (batch, py, px) against numpy."""
     x = np.asarray(x, dtype)  # the reference transforms exactly the values the device sees
-    plan = ClPlan(rt, x.shape, dtype, local_limit)
+    plan = ClPlan(rt, x.shape, dtype, local_limit, group)
     xd = cla.to_device(rt.queue, x)
     spec = cla.empty(rt.queue, plan.spec_shape, plan.cdtype)
     plan.forward(xd, spec)
@@ -59,6 +59,17 @@ def test_pass_kernels_through_global_memory_match_numpy(rt, dtype, py, px, batch
     e_fwd, e_inv, plan = errors(rt, x, dtype, local_limit=0)
     assert not plan.rows_local and not plan.cols_local
     assert e_fwd <= TOL[dtype] and e_inv <= TOL[dtype], (e_fwd, e_inv)
+
+
+@pytest.mark.parametrize("group", [(1, 1), (8, 1), (1, 64), (16, 16), (4, 32)])
+@pytest.mark.parametrize("shape", [(3, 48, 60), (2, 45, 63), (5, 7, 130)])
+def test_every_work_group_shape_gives_the_same_transform(rt, shape, group):
+    """Several lines per work-group and several work-items per line (the GPU shapes), on this
+    device: the butterfly loops and the partial last group must not depend on the local size."""
+    x = np.random.default_rng(5).standard_normal(shape)
+    e_fwd, e_inv, plan = errors(rt, x, np.float32, group=group)
+    assert plan.rows_local and plan.cols_local
+    assert e_fwd <= TOL[np.dtype(np.float32)] and e_inv <= TOL[np.dtype(np.float32)], (e_fwd, e_inv)
 
 
 @pytest.mark.parametrize("shape", [(2, 9, 4096), (1, 4096, 10), (2, 3645, 7)])

@@ -79,10 +79,12 @@ class ClPlan:
     """Batched 2D real <-> complex FFT of (batch, py, px) with cm2cl's kernels.
 
     ``local_limit`` (bytes; default the device's local memory) caps the local memory a line
-    kernel may use; lines that do not fit go through the pass kernels (tests use it to force them).
+    kernel may use; lines that do not fit go through the pass kernels.  ``group`` = (lines per
+    work-group, work-items per line) wanted for rows and columns alike, instead of the per-device
+    choice (both for tests: they run the GPU shapes on a CPU device and force the pass path).
     """
 
-    def __init__(self, rt, real_shape, dtype, local_limit: int | None = None):
+    def __init__(self, rt, real_shape, dtype, local_limit: int | None = None, group=None):
         import pyopencl as cl
         import pyopencl.array as cla
 
@@ -102,10 +104,6 @@ class ClPlan:
         limit = rt.caps.local_mem if local_limit is None else int(local_limit)
         limit = min(limit, rt.caps.local_mem) - 256  # room for the kernel's own locals
         item = _cplx_item(self.dtype)
-        # Local sizes measured on PoCL (CPU, 2 cores, 648 x 864 x 16, float32): one work-item per row
-        # line (2.1 ms/plane against 4.4 with 64) and 8 columns x 1 work-item per column block
-        # (2.5 ms/plane against 3.4-9.4 for 4-32 columns and 4-64 work-items): a CPU work-group runs
-        # as one loop, barriers cost more than they share.  GPUs get wide groups.
         cpu = rt.caps.kind == "CPU"
 
         self.tw_row = self._table(self.nrow)
@@ -114,35 +112,44 @@ class ClPlan:
         self.twr = cla.to_device(rt.queue, np.exp(-1j * np.pi * k / self.nrow).astype(self.cdtype))
         self._scratch = None
 
-        # rows: one line per work-group
-        self.rows_local = 2 * self.nrow * item <= limit
-        if self.rows_local:
-            defs = _line_defines(self.nrow) | {"FFT_C": 1}
-            if self.half:
-                defs["FFT_HALF"] = 1
-            self._r2c = kernels.kernel(rt, "fft.cl", "rows_r2c", self.dtype, defs)
-            self._c2r = kernels.kernel(rt, "fft.cl", "rows_c2r", self.dtype, defs)
-            cap = 1 if cpu else max(1, min(self.nrow // 2, 256))
-            self._row_local = min(kernels.work_group_size(rt, self._r2c, cap),
-                                  kernels.work_group_size(rt, self._c2r, cap))
-        # columns: FFT_C columns per work-group, the largest power of two <= 16 (8 on CPUs) that fits
-        self.col_c = 8 if cpu else 16
-        while self.col_c > 1 and (2 * py * self.col_c * item > limit or self.col_c > 2 * self.w):
-            self.col_c //= 2
-        self.cols_local = 2 * py * self.col_c * item <= limit and (self.col_c >= 4 or self.w < 4 or cpu)
-        if self.cols_local:
-            while True:  # the local size in dimension 0 is FFT_C: rebuild if the kernel allows fewer
-                defs = _line_defines(py) | {"FFT_C": self.col_c}
-                self._k_cols = kernels.kernel(rt, "fft.cl", "cols", self.dtype, defs)
-                L = kernels.work_group_size(rt, self._k_cols, 256)
-                if L >= self.col_c:
-                    break
-                self.col_c = L
-            self._cols_t = 1 if cpu else max(1, min(L // self.col_c, max(1, py // 2)))
+        # Local sizes (lines per work-group C x work-items per line T) measured on PoCL (CPU,
+        # 2 cores, shared, 648 x 864 x 16, float32): columns 8 x 1 (2.5 ms/plane against 3.4-9.4
+        # for 4-32 columns with 4-64 work-items), rows 1 x 1 (3.1 ms/plane against 3.6-5.6 for
+        # 4-16 lines, 3.8-4.7 for 4-256 work-items): a CPU work-group runs as one loop, and
+        # barriers cost more than they share.  GPUs (not measured here): rows one line per group
+        # and wide T; columns 16 per group (coalesced reads), the rest in T.
+        defs = _line_defines(self.nrow) | ({"FFT_HALF": 1} if self.half else {})
+        row_ct, col_ct = ((1, 1 if cpu else 256), (8 if cpu else 16, 1 if cpu else 256)) if group is None \
+            else (tuple(group), tuple(group))
+        rows = self._line_kernels(defs, ("rows_r2c", "rows_c2r"), *row_ct, limit, 1)
+        self.rows_local = rows is not None
+        if rows:
+            (self._r2c, self._c2r), self.row_c, self.row_t = rows
+        cols = self._line_kernels(_line_defines(py), ("cols",), *col_ct, limit, 1 if cpu or self.w < 4 else 4)
+        self.cols_local = cols is not None
+        if cols:
+            (self._k_cols,), self.col_c, self.col_t = cols
         if not (self.rows_local and self.cols_local):
             self._pack = {name: kernels.kernel(rt, "fft.cl", name, self.dtype)
                           for name in ("pack_real", "untangle", "tangle", "unpack_real")}
         self._cl = cl
+
+    def _line_kernels(self, defs, names, want_c, want_t, limit, min_c):
+        """Kernels `names` built for lines of defs["FFT_N"] points with C lines per work-group: the
+        largest power of two C <= want_c whose two local buffers fit in `limit` bytes and within
+        the kernels' work-group limit; T = work-items per line (<= want_t, <= n/2).  None if no
+        C >= min_c fits (the lines then go through the pass kernels)."""
+        n, item = defs["FFT_N"], _cplx_item(self.dtype)
+        c = want_c
+        while c >= max(1, min_c):
+            if 2 * n * c * item <= limit:
+                ks = tuple(kernels.kernel(self.rt, "fft.cl", name, self.dtype, defs | {"FFT_C": c})
+                           for name in names)
+                L = min(kernels.work_group_size(self.rt, k, 256) for k in ks)
+                if L >= c:
+                    return ks, c, max(1, min(want_t, L // c, n // 2))
+            c //= 2
+        return None
 
     # ---- tables and scratch -------------------------------------------------------------------
     def _table(self, n: int):
@@ -192,8 +199,8 @@ class ClPlan:
         """Columns of the spectrum in place (inverse: conjugated in and out, unnormalised)."""
         n = self.py
         if self.cols_local:
-            g = (-(-self.w // self.col_c) * self.col_c, self._cols_t, self.batch)
-            self._k_cols(self.rt.queue, g, (self.col_c, self._cols_t, 1), spec.data, np.int32(self.w),
+            g = (-(-self.w // self.col_c) * self.col_c, self.col_t, self.batch)
+            self._k_cols(self.rt.queue, g, (self.col_c, self.col_t, 1), spec.data, np.int32(self.w),
                          np.int32(inverse), self.tw_col.data)
             return
         radices = factor(n)
@@ -213,8 +220,9 @@ class ClPlan:
         """dst (batch, py, px//2+1) complex <- 2D FFT of src (batch, py, px) real."""
         lines = self.batch * self.py
         if self.rows_local:
-            T = self._row_local
-            self._r2c(self.rt.queue, (T, lines), (T, 1), dst.data, src.data, self.tw_row.data, self.twr.data)
+            C, T = self.row_c, self.row_t
+            self._r2c(self.rt.queue, (-(-lines // C) * C, T), (C, T), dst.data, src.data, self.tw_row.data,
+                      self.twr.data, np.int32(lines))
         else:
             a, b = self._scratch_buffers()
             kernels.launch(self.rt, self._pack["pack_real"], (self.nrow, lines), a.data, src.data,
@@ -231,9 +239,9 @@ class ClPlan:
         lines = self.batch * self.py
         scale = self.dtype.type(1.0 / (self.nrow * self.py))
         if self.rows_local:
-            T = self._row_local
-            self._c2r(self.rt.queue, (T, lines), (T, 1), dst.data, src.data, self.tw_row.data, self.twr.data,
-                      scale)
+            C, T = self.row_c, self.row_t
+            self._c2r(self.rt.queue, (-(-lines // C) * C, T), (C, T), dst.data, src.data, self.tw_row.data,
+                      self.twr.data, scale, np.int32(lines))
         else:
             a, b = self._scratch_buffers()
             kernels.launch(self.rt, self._pack["tangle"], (self.nrow, lines), a.data, src.data,
