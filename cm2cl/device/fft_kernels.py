@@ -86,7 +86,6 @@ class ClPlan:
 
     def __init__(self, rt, real_shape, dtype, local_limit: int | None = None, group=None):
         import pyopencl as cl
-        import pyopencl.array as cla
 
         self.rt = rt
         self.dtype = np.dtype(dtype)
@@ -103,13 +102,11 @@ class ClPlan:
         factor(py, f"fft size py={py}")
         limit = rt.caps.local_mem if local_limit is None else int(local_limit)
         limit = min(limit, rt.caps.local_mem) - 256  # room for the kernel's own locals
-        item = _cplx_item(self.dtype)
         cpu = rt.caps.kind == "CPU"
 
         self.tw_row = self._table(self.nrow)
         self.tw_col = self._table(py)
-        k = np.arange(self.nrow + 1, dtype=np.float64)
-        self.twr = cla.to_device(rt.queue, np.exp(-1j * np.pi * k / self.nrow).astype(self.cdtype))
+        self.twr = self._table(2 * self.nrow, self.nrow + 1)  # exp(-pi i k / nrow), k <= nrow
         self._scratch = None
 
         # Local sizes (lines per work-group C x work-items per line T) measured on PoCL (CPU,
@@ -152,15 +149,17 @@ class ClPlan:
         return None
 
     # ---- tables and scratch -------------------------------------------------------------------
-    def _table(self, n: int):
-        """exp(-2 pi i m / n), m < n, computed in double, cached per (n, type) on the runtime."""
+    def _table(self, n: int, count: int | None = None):
+        """exp(-2 pi i m / n) for m < count (default n), computed in double, cached on the runtime."""
         import pyopencl.array as cla
 
+        count = n if count is None else count
+
         def make():
-            m = np.arange(n, dtype=np.float64)
+            m = np.arange(count, dtype=np.float64)
             return cla.to_device(self.rt.queue, np.exp(-2j * np.pi * m / n).astype(self.cdtype))
 
-        return self.rt.cached(("fft_twiddles", n, self.cdtype.str), make)
+        return self.rt.cached(("fft_twiddles", n, count, self.cdtype.str), make)
 
     @property
     def scratch_bytes(self) -> int:
