@@ -61,14 +61,18 @@ def test_pass_kernels_through_global_memory_match_numpy(rt, dtype, py, px, batch
     assert e_fwd <= TOL[dtype] and e_inv <= TOL[dtype], (e_fwd, e_inv)
 
 
-@pytest.mark.parametrize("group", [(1, 1), (8, 1), (1, 64), (16, 16), (4, 32)])
+@pytest.mark.parametrize("group", [(1, 1, 1), (8, 1, 1), (1, 64, 1), (16, 16, 1), (4, 32, 1), (1, 1, 8),
+                                   (2, 1, 4), (1, 4, 2), (3, 2, 8)])
 @pytest.mark.parametrize("shape", [(3, 48, 60), (2, 45, 63), (5, 7, 130)])
 def test_every_work_group_shape_gives_the_same_transform(rt, shape, group):
-    """Several lines per work-group and several work-items per line (the GPU shapes), on this
-    device: the butterfly loops and the partial last group must not depend on the local size."""
+    """(work-items per group, work-items per line, lines per work-item): several lines per
+    work-group and several work-items per line (the GPU shapes), SIMD across lines (the CPU
+    shapes), on this device: the butterfly loops and the partial last group or vector must not
+    depend on the shape."""
     x = np.random.default_rng(5).standard_normal(shape)
     e_fwd, e_inv, plan = errors(rt, x, np.float32, group=group)
     assert plan.rows_local and plan.cols_local
+    assert (plan.row_c, plan.row_v) == (group[0], group[2]) and (plan.col_c, plan.col_v) == (group[0], group[2])
     assert e_fwd <= TOL[np.dtype(np.float32)] and e_inv <= TOL[np.dtype(np.float32)], (e_fwd, e_inv)
 
 

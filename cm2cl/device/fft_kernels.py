@@ -71,6 +71,18 @@ def _line_defines(n: int) -> dict:
     return d
 
 
+def _lines_per_item(caps, dtype) -> int:
+    """Lines a work-item transforms together on a CPU (SIMD across lines): the largest of 1, 2,
+    4, 8 within the device's native vector width of the real type.  Measured on PoCL (AVX-512,
+    648 x 864 x 16, r2c + c2r per plane): float32 8.2 ms with 1, 7.5 with 2, 4.9 with 4, 3.3 with 8;
+    float64 8.3 with 2, 5.6 with 4, 4.9 with 8."""
+    width = caps.vector_width_float if np.dtype(dtype) == np.float32 else caps.vector_width_double
+    v = 1
+    while v * 2 <= min(8, width):
+        v *= 2
+    return v
+
+
 def _cplx_item(dtype) -> int:
     return 2 * np.dtype(dtype).itemsize
 
@@ -79,9 +91,10 @@ class ClPlan:
     """Batched 2D real <-> complex FFT of (batch, py, px) with cm2cl's kernels.
 
     ``local_limit`` (bytes; default the device's local memory) caps the local memory a line
-    kernel may use; lines that do not fit go through the pass kernels.  ``group`` = (lines per
-    work-group, work-items per line) wanted for rows and columns alike, instead of the per-device
-    choice (both for tests: they run the GPU shapes on a CPU device and force the pass path).
+    kernel may use; lines that do not fit go through the pass kernels.  ``group`` = (work-items
+    per work-group, work-items per line[, lines per work-item]) wanted for rows and columns alike,
+    instead of the per-device choice (both for tests: they run the GPU shapes on a CPU device and
+    force the pass path).
     """
 
     def __init__(self, rt, real_shape, dtype, local_limit: int | None = None, group=None):
@@ -109,43 +122,48 @@ class ClPlan:
         self.twr = self._table(2 * self.nrow, self.nrow + 1)  # exp(-pi i k / nrow), k <= nrow
         self._scratch = None
 
-        # Local sizes (lines per work-group C x work-items per line T) measured on PoCL (CPU,
-        # 2 cores, shared, 648 x 864 x 16, float32): columns 8 x 1 (2.5 ms/plane against 3.4-9.4
-        # for 4-32 columns with 4-64 work-items), rows 1 x 1 (3.1 ms/plane against 3.6-5.6 for
-        # 4-16 lines, 3.8-4.7 for 4-256 work-items): a CPU work-group runs as one loop, and
-        # barriers cost more than they share.  GPUs (not measured here): rows one line per group
+        # Work-group shapes: V lines per work-item x C work-items per group x T work-items per line.
+        # CPUs (PoCL, measured on 648 x 864 x 16 float32, r2c + c2r per plane, shared 2 cores):
+        # V from the SIMD width (see _lines_per_item), C = T = 1 (V = 8: 1.75 ms with C = 1 or 2,
+        # 2.0 with 4, 3.1 with 8; T = 2: 3.3): a CPU work-group runs as one loop, and barriers
+        # cost more than they share.  GPUs (not measured here): V = 1; rows one line per group
         # and wide T; columns 16 per group (coalesced reads), the rest in T.
         defs = _line_defines(self.nrow) | ({"FFT_HALF": 1} if self.half else {})
-        row_ct, col_ct = ((1, 1 if cpu else 256), (8 if cpu else 16, 1 if cpu else 256)) if group is None \
-            else (tuple(group), tuple(group))
+        vec = _lines_per_item(rt.caps, self.dtype) if cpu else 1
+        row_ct, col_ct = ((1, 1 if cpu else 256, vec), (1 if cpu else 16, 1 if cpu else 256, vec)) \
+            if group is None else ((tuple(group) + (1,))[:3], (tuple(group) + (1,))[:3])
         rows = self._line_kernels(defs, ("rows_r2c", "rows_c2r"), *row_ct, limit, 1)
         self.rows_local = rows is not None
         if rows:
-            (self._r2c, self._c2r), self.row_c, self.row_t = rows
+            (self._r2c, self._c2r), self.row_c, self.row_t, self.row_v = rows
         cols = self._line_kernels(_line_defines(py), ("cols",), *col_ct, limit, 1 if cpu or self.w < 4 else 4)
         self.cols_local = cols is not None
         if cols:
-            (self._k_cols,), self.col_c, self.col_t = cols
+            (self._k_cols,), self.col_c, self.col_t, self.col_v = cols
         if not (self.rows_local and self.cols_local):
             self._pack = {name: kernels.kernel(rt, "fft.cl", name, self.dtype)
                           for name in ("pack_real", "untangle", "tangle", "unpack_real")}
         self._cl = cl
 
-    def _line_kernels(self, defs, names, want_c, want_t, limit, min_c):
-        """Kernels `names` built for lines of defs["FFT_N"] points with C lines per work-group: the
-        largest power of two C <= want_c whose two local buffers fit in `limit` bytes and within
-        the kernels' work-group limit; T = work-items per line (<= want_t, <= n/2).  None if no
-        C >= min_c fits (the lines then go through the pass kernels)."""
+    def _line_kernels(self, defs, names, want_c, want_t, want_v, limit, min_c):
+        """Kernels `names` built for lines of defs["FFT_N"] points, each work-item transforming V
+        neighbouring lines together, C work-items per work-group: the largest power of two C <=
+        want_c (V = want_v, halved down to 1 when nothing fits) whose two local buffers fit in
+        `limit` bytes and within the kernels' work-group limit; T = work-items per line (<= want_t,
+        <= n/2).  None if no C >= min_c fits (the lines then go through the pass kernels)."""
         n, item = defs["FFT_N"], _cplx_item(self.dtype)
-        c = want_c
-        while c >= max(1, min_c):
-            if 2 * n * c * item <= limit:
-                ks = tuple(kernels.kernel(self.rt, "fft.cl", name, self.dtype, defs | {"FFT_C": c})
-                           for name in names)
-                L = min(kernels.work_group_size(self.rt, k, 256) for k in ks)
-                if L >= c:
-                    return ks, c, max(1, min(want_t, L // c, n // 2))
-            c //= 2
+        v = want_v
+        while v >= 1:
+            c = want_c
+            while c >= max(1, min_c):
+                if 2 * n * c * v * item <= limit:
+                    ks = tuple(kernels.kernel(self.rt, "fft.cl", name, self.dtype,
+                                              defs | {"FFT_C": c, "FFT_VEC": v}) for name in names)
+                    L = min(kernels.work_group_size(self.rt, k, 256) for k in ks)
+                    if L >= c:
+                        return ks, c, max(1, min(want_t, L // c, n // 2)), v
+                c //= 2
+            v //= 2
         return None
 
     # ---- tables and scratch -------------------------------------------------------------------
@@ -198,7 +216,7 @@ class ClPlan:
         """Columns of the spectrum in place (inverse: conjugated in and out, unnormalised)."""
         n = self.py
         if self.cols_local:
-            g = (-(-self.w // self.col_c) * self.col_c, self.col_t, self.batch)
+            g = (-(-self.w // (self.col_c * self.col_v)) * self.col_c, self.col_t, self.batch)
             self._k_cols(self.rt.queue, g, (self.col_c, self.col_t, 1), spec.data, np.int32(self.w),
                          np.int32(inverse), self.tw_col.data)
             return
@@ -220,7 +238,7 @@ class ClPlan:
         lines = self.batch * self.py
         if self.rows_local:
             C, T = self.row_c, self.row_t
-            self._r2c(self.rt.queue, (-(-lines // C) * C, T), (C, T), dst.data, src.data, self.tw_row.data,
+            self._r2c(self.rt.queue, (-(-lines // (C * self.row_v)) * C, T), (C, T), dst.data, src.data, self.tw_row.data,
                       self.twr.data, np.int32(lines))
         else:
             a, b = self._scratch_buffers()
@@ -239,7 +257,7 @@ class ClPlan:
         scale = self.dtype.type(1.0 / (self.nrow * self.py))
         if self.rows_local:
             C, T = self.row_c, self.row_t
-            self._c2r(self.rt.queue, (-(-lines // C) * C, T), (C, T), dst.data, src.data, self.tw_row.data,
+            self._c2r(self.rt.queue, (-(-lines // (C * self.row_v)) * C, T), (C, T), dst.data, src.data, self.tw_row.data,
                       self.twr.data, scale, np.int32(lines))
         else:
             a, b = self._scratch_buffers()
