@@ -114,3 +114,18 @@ def test_odd_prime_radices_11_and_13(rt):
     x = np.random.default_rng(11).standard_normal((2, 13 * 4, 11 * 3))
     e_fwd, e_inv, _ = errors(rt, x, np.float64)
     assert e_fwd <= 1e-14 and e_inv <= 1e-14, (e_fwd, e_inv)
+
+
+def test_lines_per_work_item_follow_the_simd_width(rt):
+    """CPUs transform as many lines together as one native vector holds (at most 8); a device
+    without SIMD gets one."""
+    from dataclasses import replace
+
+    from cm2cl.device.fft_kernels import _lines_per_item
+
+    caps = replace(rt.caps, vector_width_float=16, vector_width_double=8)
+    assert _lines_per_item(caps, np.float32) == 8 and _lines_per_item(caps, np.float64) == 8
+    caps = replace(rt.caps, vector_width_float=8, vector_width_double=4)
+    assert _lines_per_item(caps, np.float32) == 8 and _lines_per_item(caps, np.float64) == 4
+    caps = replace(rt.caps, vector_width_float=1, vector_width_double=3)
+    assert _lines_per_item(caps, np.float32) == 1 and _lines_per_item(caps, np.float64) == 2
