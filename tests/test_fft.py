@@ -3,6 +3,7 @@ import pyopencl.array as cla
 import pytest
 
 from cm2cl.device import fft
+from cm2cl.errors import InputError
 
 SHAPES = [(64, 128), (48, 60), (42, 70), (45, 63), (31, 17)]  # pow2, smooth, 7-smooth, odd, prime
 
@@ -12,6 +13,10 @@ def test_fft_matches_numpy_float64(rt, backend, dtype, shape):
     rng = np.random.default_rng(sum(shape))
     batch = 3
     x = rng.standard_normal((batch,) + shape)
+    if backend == "cl" and not all(fft._is_smooth(n, (2, 3, 5, 7, 11, 13)) for n in shape):
+        with pytest.raises(InputError, match=r"fft size p[xy]=\d+: .* prime factor \d+ > 13"):
+            fft.get_plan(rt, shape, batch, dtype, backend)
+        return
     plan = fft.get_plan(rt, shape, batch, dtype, backend)
     xd = cla.to_device(rt.queue, x.astype(dtype))
     spec = cla.empty(rt.queue, plan.spec_shape, plan.cdtype)
@@ -30,11 +35,12 @@ def test_fft_matches_numpy_float64(rt, backend, dtype, shape):
 
 def test_good_size_per_backend():
     assert fft.good_size(647, "reikna") == 1024
-    assert fft.good_size(647, "vkfft") == 648  # 2^3 3^4
-    assert fft.good_size(863, "vkfft") == 864
-    for n in range(1, 300):
-        g = fft.good_size(n, "vkfft")
-        assert g >= n and g % 2 == 0 and fft._is_smooth(g)
+    for b in ("vkfft", "cl"):
+        assert fft.good_size(647, b) == 648  # 2^3 3^4
+        assert fft.good_size(863, b) == 864
+        for n in range(1, 300):
+            g = fft.good_size(n, b)
+            assert g >= n and g % 2 == 0 and fft._is_smooth(g)
 
 
 def test_plans_are_cached(rt):
@@ -47,13 +53,46 @@ def test_unknown_backend_is_a_clear_error():
         fft.resolve_backend("cufft")
 
 
+def test_auto_backend_is_the_own_kernels_on_a_cpu(rt):
+    """The rule of docs/fft.md: cl on CPU devices (measured at least as fast as VkFFT there)."""
+    assert fft.resolve_backend("auto") == "cl"
+    if rt.caps.kind == "CPU":
+        assert fft.resolve_backend("auto", rt) == "cl"
+    assert fft.spectrum_shape((4, 6, 10), "cl") == (4, 6, 6)
+    assert fft.spectrum_shape((4, 6, 10), "reikna") == (4, 6, 10)
+
+
+def test_reconstruction_leaves_numpy_unchanged(rt, backend):
+    """No backend may add names to NumPy (reikna 0.8 needed np.float_, np.cast, ... patched in):
+    the names in numpy's namespace are the same before and after a reconstruction, except for
+    NumPy's own submodules that get imported on first use.  In a fresh interpreter, so that no
+    earlier test has changed NumPy already."""
+    import subprocess
+    import sys
+
+    script = f"""
+import numpy as np, cm2cl
+names = lambda: {{k for k, v in np.__dict__.items()
+                 if not (type(v) is type(np) and v.__name__.startswith("numpy."))}}
+rng = np.random.default_rng(3)
+psf, y = rng.random((2, 8, 8)).astype(np.float32), rng.random((8, 8)).astype(np.float32)
+before = names()
+rec = cm2cl.reconstruct(y, psf, backend={backend!r}, device={rt.caps.index}, max_iter=2)
+assert rec.volume.shape == (2, 8, 8), rec.volume.shape
+print(sorted(names() ^ before))
+"""
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.strip().splitlines()[-1] == "[]", f"numpy's names changed: {out.stdout.strip()}"
+
+
 from hypothesis import given, settings, strategies as st  # noqa: E402
 
 from cm2cl.device.volume import slab_bounds  # noqa: E402
 
 
 @settings(max_examples=200, deadline=None)
-@given(n=st.integers(1, 5000), backend=st.sampled_from(["vkfft", "reikna"]))
+@given(n=st.integers(1, 5000), backend=st.sampled_from(["cl", "vkfft", "reikna"]))
 def test_good_size_is_the_smallest_fast_size(n, backend):
     g = fft.good_size(n, backend)
     fast = (lambda m: m & (m - 1) == 0) if backend == "reikna" else (lambda m: m % 2 == 0 and fft._is_smooth(m))

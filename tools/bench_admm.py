@@ -21,7 +21,7 @@ from benchlib import best_time, copy_bandwidth, markdown_table, parse_size, writ
 
 from cm2cl import reference
 from cm2cl.device import fft  # noqa: E402
-from cm2cl.admm import ADMMSolver  # noqa: E402
+from cm2cl.solver.admm import ADMMSolver  # noqa: E402
 from cm2cl.device import get_runtime  # noqa: E402
 from cm2cl.solver.params import ADMMParams  # noqa: E402
 

@@ -33,5 +33,5 @@ def command(args) -> int:
     print(device.format_table(caps, chosen, compiles))
     print("\n* = device cm2cl uses now (CM2CL_DEVICE / PYOPENCL_CTX / --device override the choice)")
     print(f"FFT backends available: {', '.join(fft.available_backends())} "
-          f"(auto picks {fft.resolve_backend('auto')})")
+          f"(auto picks {fft.resolve_backend('auto', device.get_runtime(args.device))})")
     return 0

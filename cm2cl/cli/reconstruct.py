@@ -36,7 +36,7 @@ def register(sub):
     g.add_argument("--patience", type=int, default=_DEFAULTS.patience)
     g.add_argument("--no-balance", action="store_true", help="keep the penalties fixed")
     g.add_argument("--dtype", choices=["float32", "float64"], default="float32")
-    g.add_argument("--backend", default="auto", help="FFT backend: auto, vkfft, reikna")
+    g.add_argument("--backend", default="auto", help="FFT backend: auto, cl, vkfft, reikna")
     g.add_argument("--device", default=None, help="device index or name fragment (see cm2cl devices)")
     g = r.add_argument_group("input preparation")
     g.add_argument("--offset", default="none",

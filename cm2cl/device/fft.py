@@ -1,15 +1,21 @@
 """Batched 2D FFTs on the device behind one small interface.
 
-Two backends:
+Three backends:
 
-* ``vkfft`` (pyvkfft, when importable): real-to-complex, fast on 2/3/5/7-smooth sizes; the
-  spectrum of a (b, py, px) real array is (b, py, px//2 + 1) complex.
+* ``cl`` (always available): cm2cl's own kernels (``kernels/fft.cl``, plans in
+  :mod:`.fft_kernels`), real-to-complex, 2/3/5/7-smooth sizes (odd ones too; prime factors up to
+  13); the spectrum of a (b, py, px) real array is (b, py, px//2 + 1) complex.
+* ``vkfft`` (pyvkfft, when importable): real-to-complex, the same sizes and layout as ``cl``.
 * ``reikna`` (always available): complex-to-complex, fast on powers of two; the spectrum is
   (b, py, px) complex.  Real input is widened on the device first.
 
+``auto`` picks ``cl`` on CPU devices, where it measured 2.7-3.5x faster than VkFFT (docs/fft.md,
+``tools/bench_fft.py``), and ``vkfft`` on other devices when pyvkfft is importable (not measured
+here), else ``cl``.
+
 Every kernel downstream is elementwise over the spectrum, so the two layouts need no special
-casing: a plane of the spectrum is ``plan.spec_shape[1:]``.  Inverse transforms are normalised
-(ifft(fft(x)) == x) and may overwrite their input.  No fast-math anywhere.
+casing: a plane of the spectrum is ``plan.spec_shape[1:]`` (:func:`spectrum_shape`).  Inverse
+transforms are normalised (ifft(fft(x)) == x) and may overwrite their input.  No fast-math anywhere.
 """
 
 from __future__ import annotations
@@ -19,7 +25,9 @@ import numpy as np
 from . import kernels
 from ..errors import InputError
 
-BACKENDS = ("vkfft", "reikna")
+BACKENDS = ("cl", "vkfft", "reikna")
+#: backends whose spectrum holds only the px//2 + 1 non-negative frequencies of the last axis
+HALF_SPECTRUM = ("cl", "vkfft")
 
 
 def _vkfft_importable() -> bool:
@@ -34,11 +42,14 @@ def available_backends() -> list[str]:
     return [b for b in BACKENDS if b != "vkfft" or _vkfft_importable()]
 
 
-def resolve_backend(name: str | None = "auto") -> str:
-    """'auto' -> vkfft if importable, else reikna; an explicit name must be available."""
+def resolve_backend(name: str | None = "auto", rt=None) -> str:
+    """'auto' -> ``cl`` on CPU devices (or when ``rt`` is not given), else ``vkfft`` if importable,
+    else ``cl`` (the rule and its measurements: docs/fft.md); an explicit name must be available."""
     name = (name or "auto").lower()
     if name == "auto":
-        return "vkfft" if _vkfft_importable() else "reikna"
+        if rt is not None and rt.caps.kind != "CPU" and _vkfft_importable():
+            return "vkfft"
+        return "cl"
     if name not in BACKENDS:
         raise InputError(f"fft backend: unknown backend {name!r} (known: auto, {', '.join(BACKENDS)})")
     if name == "vkfft" and not _vkfft_importable():
@@ -55,7 +66,8 @@ def _is_smooth(n: int, primes=(2, 3, 5, 7)) -> bool:
 
 
 def good_size(n: int, backend: str) -> int:
-    """Smallest size >= n on which ``backend`` is fast (and even, for real-to-complex)."""
+    """Smallest size >= n on which ``backend`` is fast: a power of two for reikna, else even and
+    2/3/5/7-smooth (real-to-complex through the half-length transform)."""
     n = max(int(n), 1)
     if backend == "reikna":
         return 1 << (n - 1).bit_length()
@@ -63,6 +75,13 @@ def good_size(n: int, backend: str) -> int:
     while not _is_smooth(m):
         m += 2
     return m
+
+
+def spectrum_shape(real_shape, backend: str) -> tuple:
+    """Shape of the spectrum of a (..., py, px) real array: px//2 + 1 in the last axis for the
+    half-spectrum backends, px for reikna."""
+    *lead, px = (int(s) for s in real_shape)
+    return tuple(lead) + ((px // 2 + 1) if backend in HALF_SPECTRUM else px,)
 
 
 def complex_dtype(dtype) -> np.dtype:
@@ -79,18 +98,20 @@ class FFTPlan:
         self.backend = backend
         py, px = (int(s) for s in shape)
         self.real_shape = (int(batch), py, px)
-        if backend == "vkfft":
+        self.spec_shape = spectrum_shape(self.real_shape, backend)
+        if backend == "cl":
+            from .fft_kernels import ClPlan
+
+            self._cl = ClPlan(rt, self.real_shape, self.dtype)
+        elif backend == "vkfft":
             from pyvkfft.opencl import VkFFTApp
 
-            self.spec_shape = (int(batch), py, px // 2 + 1)
             self._app = VkFFTApp(self.real_shape, self.dtype, rt.queue, ndim=2, inplace=False,
                                  r2c=True, r2c_odd=bool(px % 2), norm=1)
         elif backend == "reikna":
-            _install_reikna_numpy2_compat()
             from reikna.core import Type
             from reikna.fft import FFT
 
-            self.spec_shape = self.real_shape
             self._fft = FFT(Type(self.cdtype, self.spec_shape), axes=(1, 2)).compile(_reikna_thread(rt))
             self._r2c = kernels.kernel(rt, "layout.cl", "real_to_complex", self.dtype)
             self._re = kernels.kernel(rt, "layout.cl", "complex_real_part", self.dtype)
@@ -105,7 +126,9 @@ class FFTPlan:
         """dst (spectrum) <- FFT(src (real)); src is left intact."""
         self._check(src, self.real_shape, self.dtype, "fft input")
         self._check(dst, self.spec_shape, self.cdtype, "fft output")
-        if self.backend == "vkfft":
+        if self.backend == "cl":
+            self._cl.forward(src, dst)
+        elif self.backend == "vkfft":
             self._app.fft(src, dst)
         else:
             n = np.uint64(src.size)
@@ -117,7 +140,9 @@ class FFTPlan:
         """dst (real) <- IFFT(src (spectrum)), normalised; src may be overwritten."""
         self._check(src, self.spec_shape, self.cdtype, "ifft input")
         self._check(dst, self.real_shape, self.dtype, "ifft output")
-        if self.backend == "vkfft":
+        if self.backend == "cl":
+            self._cl.inverse(src, dst)
+        elif self.backend == "vkfft":
             self._app.ifft(src, dst)
         else:
             self._fft(src, src, inverse=1)
@@ -126,27 +151,9 @@ class FFTPlan:
         return dst
 
 
-def _install_reikna_numpy2_compat():
-    """reikna 0.8 (the last release with reikna.cluda) predates NumPy 2 and uses four names
-    NumPy 2 removed.  Restore exactly those names, with their NumPy 1 meaning, if missing."""
-    d = np.__dict__
-    if "float_" not in d:
-        np.float_ = np.float64
-    if "complex_" not in d:
-        np.complex_ = np.complex128
-    if "issctype" not in d:
-        np.issctype = lambda rep: isinstance(rep, type) and issubclass(rep, np.generic)
-    if "cast" not in d:
-        class _Cast:
-            def __getitem__(self, dt):
-                return lambda v: np.asarray(v).astype(dt)[()]
-        np.cast = _Cast()
-
-
 def _reikna_thread(rt):
     def make():
-        _install_reikna_numpy2_compat()
-        from reikna.cluda import ocl_api
+        from reikna.cluda import ocl_api  # reikna >= 0.9: NumPy 2 compatible, nothing to patch
 
         return ocl_api().Thread(rt.queue)
 
@@ -155,7 +162,7 @@ def _reikna_thread(rt):
 
 def get_plan(rt, shape, batch: int, dtype, backend: str = "auto") -> FFTPlan:
     """Cached plan on runtime ``rt`` for (batch, *shape) real arrays of ``dtype``."""
-    backend = resolve_backend(backend)
+    backend = resolve_backend(backend, rt)
     dtype = rt.check_dtype(dtype)
     key = ("fft", backend, tuple(int(s) for s in shape), int(batch), dtype.str)
     return rt.cached(key, lambda: FFTPlan(rt, shape, batch, dtype, backend))

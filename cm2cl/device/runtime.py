@@ -49,6 +49,8 @@ class Capabilities:
     opencl_version: str
     platform_version: str = ""
     driver_version: str = ""
+    vector_width_float: int = 1   # native SIMD width in float32 / float64 lanes
+    vector_width_double: int = 1
 
     @property
     def implementation(self) -> str:
@@ -106,6 +108,8 @@ def capabilities(device, index: int = -1) -> Capabilities:
         opencl_version=device.version.strip(),
         platform_version=device.platform.version.strip(),
         driver_version=device.driver_version.strip(),
+        vector_width_float=max(1, int(device.native_vector_width_float)),
+        vector_width_double=max(1, int(device.native_vector_width_double)),
     )
 
 

@@ -50,7 +50,7 @@ class ADMMSolver:
         self.p = params
         self.rt = rt = get_runtime(device)
         self.dtype = rt.check_dtype(dtype)
-        self.backend = resolve_backend(backend)
+        self.backend = resolve_backend(backend, rt)
         sensor = psf.shape[1:]
         P = tuple(padded_shape) if padded_shape is not None else choose_padded_shape(sensor, self.backend)
         if any(p < n for p, n in zip(P, min_padded_shape(sensor))):
@@ -305,8 +305,8 @@ def reconstruct(measurement, psf, *,
     normalize : bool
         Normalise y and H as above (default True).
     dtype : float32 (default) or float64 (devices with fp64 only).
-    backend : {'auto', 'vkfft', 'reikna'}
-        FFT backend.
+    backend : {'auto', 'cl', 'vkfft', 'reikna'}
+        FFT backend ('cl': cm2cl's own kernels; see :mod:`cm2cl.device.fft` for what 'auto' picks).
     device : int, str, pyopencl Device or Runtime, optional
         Device index or name fragment (default: ``CM2CL_DEVICE``, else the best device).
     padded_shape : (Py, Px), optional

@@ -26,7 +26,8 @@ def min_padded_shape(sensor_shape):
 
 
 def choose_padded_shape(sensor_shape, backend: str):
-    """The padded grid a backend is fast on: powers of two for reikna, 2/3/5/7-smooth for vkfft."""
+    """The padded grid a backend is fast on: powers of two for reikna, even 2/3/5/7-smooth for cl
+    and vkfft ('auto' resolves as on a CPU device)."""
     backend = fft.resolve_backend(backend)
     return tuple(fft.good_size(n, backend) for n in min_padded_shape(sensor_shape))
 
@@ -52,7 +53,7 @@ class ForwardModel:
     psf : (nz, My, Mx) or (My, Mx) float array
         PSF per depth plane on the sensor grid (camera offset already removed).
     dtype : float32 (default) or float64 (needs a device with fp64).
-    backend : 'auto', 'vkfft' or 'reikna'.
+    backend : 'auto', 'cl', 'vkfft' or 'reikna' (see cm2cl.device.fft).
     device : device index, name fragment, pyopencl Device or Runtime; default per cm2cl.device.
     padded_shape : (Py, Px) >= 2M - 1; default the backend's fast size.
     max_slab_planes : cap on depth planes per device buffer (default: as the device allows).
@@ -64,7 +65,7 @@ class ForwardModel:
         self.rt = get_runtime(device)
         self.dtype = self.rt.check_dtype(dtype)
         self.cdtype = fft.complex_dtype(self.dtype)
-        self.backend = fft.resolve_backend(backend)
+        self.backend = fft.resolve_backend(backend, self.rt)
         self.nz = psf.shape[0]
         self.sensor_shape = tuple(psf.shape[1:])
         if padded_shape is None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..device.fft import spectrum_shape
 from ..errors import DeviceError
 
 __all__ = ["memory_estimate", "check_fits", "host_available_bytes"]
@@ -25,7 +26,7 @@ def memory_estimate(nz, padded_shape, dtype, backend) -> dict:
     """Bytes the solver allocates on the device (FFT libraries may add their own scratch)."""
     py, px = padded_shape
     item = np.dtype(dtype).itemsize
-    spec_plane = py * ((px // 2 + 1) if backend == "vkfft" else px) * 2 * item
+    spec_plane = int(np.prod(spectrum_shape((py, px), backend))) * 2 * item
     real_plane = py * px * item
     per_plane = REAL_VOLUMES * real_plane + 2 * spec_plane  # + x spectra + PSF spectra
     fixed = 6 * real_plane + 4 * spec_plane  # planes: v, xi, hx, cty, r, psf tmp; R, S, comp, hn2

@@ -1,0 +1,453 @@
+/* cm2cl's own FFT: mixed-radix Stockham autosort, batched, 2D as a row pass and a column pass.
+ *
+ * Plans and the defines come from cm2cl/device/fft_kernels.py.  Conventions:
+ *  - forward transforms use exp(-2 pi i jk / N); an inverse is conj(FFT(conj(z))), so every kernel
+ *    only runs forward butterflies and conjugates on load/store where asked;
+ *  - twiddles are tables computed in double on the host: tw[m] = exp(-2 pi i m / N), m < N, of the
+ *    line length N; a radix-R pass with sub-transform length Ns multiplies input r of butterfly j by
+ *    tw[r * (j % Ns) * (N / (Ns R))];
+ *  - one Stockham pass reads x[j + r N/R] and writes y[(j / Ns) Ns R + j % Ns + r Ns], so after the
+ *    passes (Ns = 1, R0, R0 R1, ...) the result is in natural order without a bit-reversal step;
+ *  - the odd radices 3, 5 (explicit) and 7, 11, ... (generic, constants from the twiddle table) run as
+ *    one radix per pass; radices 2, 4 and 8 are explicit.
+ *
+ * Line kernels (the whole line in local memory; one read and one write of global memory):
+ *   defines FFT_N (complex line length), FFT_NPASS, FFT_R<p> and FFT_S<p> (radix and Ns of pass p).
+ * Pass kernels (lines too long for local memory): define FFT_R (radix); N and Ns are arguments.
+ */
+
+/* ---- FFT data: FFT_VEC complex values of neighbouring lines side by side ------------------ */
+
+/* fc_t holds FFT_VEC complex numbers (re, im, re, im, ...) of FFT_VEC neighbouring lines that a
+ * work-item transforms together: on CPUs the butterflies then run on SIMD vectors; FFT_VEC = 1
+ * (fc_t = cplx_t) everywhere else. */
+#ifndef FFT_VEC
+#define FFT_VEC 1
+#endif
+#define CAT_(a, b) a##b
+#define CAT(a, b) CAT_(a, b)
+#if FFT_VEC == 1
+typedef cplx_t fc_t;
+#define FC_WIDTH 2
+#define FC_SWAP(a) (a).yx
+#define FC_SIGN ((fc_t)(1, -1))
+#elif FFT_VEC == 2
+typedef CAT(REAL, 4) fc_t;
+#define FC_WIDTH 4
+#define FC_SWAP(a) (a).s1032
+#define FC_SIGN ((fc_t)(1, -1, 1, -1))
+#elif FFT_VEC == 4
+typedef CAT(REAL, 8) fc_t;
+#define FC_WIDTH 8
+#define FC_SWAP(a) (a).s10325476
+#define FC_SIGN ((fc_t)(1, -1, 1, -1, 1, -1, 1, -1))
+#elif FFT_VEC == 8
+typedef CAT(REAL, 16) fc_t;
+#define FC_WIDTH 16
+#define FC_SWAP(a) (a).s1032547698badcfe
+#define FC_SIGN ((fc_t)(1, -1, 1, -1, 1, -1, 1, -1, 1, -1, 1, -1, 1, -1, 1, -1))
+#else
+#error "FFT_VEC must be 1, 2, 4 or 8"
+#endif
+
+/* the FFT_VEC complex values of a fc_t one by one */
+typedef union { fc_t v; cplx_t c[FFT_VEC]; } fc_parts;
+
+inline cplx_t mul_mi(cplx_t a) { return (cplx_t)(a.y, -a.x); }  /* -i a */
+inline fc_t vmul_mi(fc_t a) { return FC_SWAP(a) * FC_SIGN; }      /* -i a, each value */
+inline fc_t vconj(fc_t a) { return a * FC_SIGN; }
+/* each value times the complex w: (x c - y s, y c + x s), the operations of cmul */
+inline fc_t vmul_tw(fc_t a, cplx_t w) { return a * w.x - vmul_mi(a) * w.y; }
+
+/* ---- butterflies on a private array, forward direction ---------------------------------- */
+
+inline void bf2(fc_t *v) {
+    const fc_t a = v[0], b = v[1];
+    v[0] = a + b; v[1] = a - b;
+}
+
+inline void bf4(fc_t *v) {
+    const fc_t t0 = v[0] + v[2], t1 = v[0] - v[2], t2 = v[1] + v[3], t3 = vmul_mi(v[1] - v[3]);
+    v[0] = t0 + t2; v[1] = t1 + t3; v[2] = t0 - t2; v[3] = t1 - t3;
+}
+
+inline void bf8(fc_t *v) {
+    const real_t h = (real_t)0.70710678118654752440084436210484903928;  /* sqrt(1/2) */
+    fc_t e[4] = {v[0], v[2], v[4], v[6]}, o[4] = {v[1], v[3], v[5], v[7]};
+    bf4(e); bf4(o);
+    /* o[k] *= exp(-2 pi i k / 8) */
+    o[1] = h * (o[1] + vmul_mi(o[1]));   /* (1 - i) h */
+    o[2] = vmul_mi(o[2]);
+    o[3] = -h * (o[3] - vmul_mi(o[3]));  /* -(1 + i) h */
+    for (int k = 0; k < 4; ++k) { v[k] = e[k] + o[k]; v[k + 4] = e[k] - o[k]; }
+}
+
+inline void bf3(fc_t *v) {
+    const real_t s = (real_t)0.86602540378443864676372317075293618347;  /* sin(2 pi / 3) */
+    const fc_t a = v[1] + v[2], d = v[1] - v[2];
+    const fc_t m = v[0] - (real_t)0.5 * a, n = s * vmul_mi(d);
+    v[0] = v[0] + a; v[1] = m + n; v[2] = m - n;
+}
+
+inline void bf5(fc_t *v) {
+    const real_t c1 = (real_t)0.30901699437494742410229341718281905886;   /* cos(2 pi / 5) */
+    const real_t c2 = (real_t)-0.80901699437494742410229341718281905886;  /* cos(4 pi / 5) */
+    const real_t s1 = (real_t)0.95105651629515357211643933337938214340;   /* sin(2 pi / 5) */
+    const real_t s2 = (real_t)0.58778525229247312916870595463907276860;   /* sin(4 pi / 5) */
+    const fc_t a1 = v[1] + v[4], b1 = v[1] - v[4], a2 = v[2] + v[3], b2 = v[2] - v[3];
+    const fc_t m1 = v[0] + c1 * a1 + c2 * a2, m2 = v[0] + c2 * a1 + c1 * a2;
+    const fc_t n1 = vmul_mi(s1 * b1 + s2 * b2), n2 = vmul_mi(s2 * b1 - s1 * b2);
+    v[0] = v[0] + a1 + a2;
+    v[1] = m1 + n1; v[4] = m1 - n1; v[2] = m2 + n2; v[3] = m2 - n2;
+}
+
+/* Odd radix R (7, 11, ...): X_q = v0 + sum_k cos(2 pi qk/R) a_k - i sum_k sin(2 pi qk/R) b_k with
+ * a_k = v_k + v_{R-k}, b_k = v_k - v_{R-k}; exp(-2 pi i m / R) = tw[m * (N / R)] (R divides N). */
+#define DEFINE_BF_ODD(R)                                                                        \
+inline void bf##R(fc_t *v, __global const cplx_t *tw, const int n) {                          \
+    fc_t a[R / 2], b[R / 2], out[R];                                                          \
+    fc_t s = v[0];                                                                            \
+    for (int k = 1; k <= R / 2; ++k) {                                                          \
+        a[k - 1] = v[k] + v[R - k]; b[k - 1] = v[k] - v[R - k]; s += a[k - 1];                  \
+    }                                                                                           \
+    out[0] = s;                                                                                 \
+    for (int q = 1; q <= R / 2; ++q) {                                                          \
+        fc_t m = v[0], t = (fc_t)(0);                                                    \
+        for (int k = 1; k <= R / 2; ++k) {                                                      \
+            const cplx_t w = tw[((q * k) % R) * (n / R)]; /* (cos, -sin) */                     \
+            m += w.x * a[k - 1]; t -= w.y * b[k - 1];                                           \
+        }                                                                                       \
+        out[q] = m + vmul_mi(t); out[R - q] = m - vmul_mi(t);                                     \
+    }                                                                                           \
+    for (int q = 0; q < R; ++q) v[q] = out[q];                                                  \
+}
+DEFINE_BF_ODD(7)
+DEFINE_BF_ODD(11)
+DEFINE_BF_ODD(13)
+
+inline void butterfly(fc_t *v, const int R, __global const cplx_t *tw, const int n) {
+    if (R == 2) bf2(v);
+    else if (R == 3) bf3(v);
+    else if (R == 4) bf4(v);
+    else if (R == 5) bf5(v);
+    else if (R == 8) bf8(v);
+    else if (R == 7) bf7(v, tw, n);
+    else if (R == 11) bf11(v, tw, n);
+    else if (R == 13) bf13(v, tw, n);
+}
+
+#define MAX_RADIX 13
+
+/* One Stockham pass, butterflies j = j0, j0 + js, ... < n / R, between two lines of an address
+ * space (element i of a line at p[i * stride]).  R and ns are compile-time constants in the line
+ * kernels, so the divisions fold. */
+#define DEFINE_PASS(NAME, SPACE)                                                                \
+inline void NAME(SPACE const fc_t *in, SPACE fc_t *out, const int stride, const int n,          \
+                 const int R, const int ns, const int j0, const int js,                         \
+                 __global const cplx_t *tw) {                                                   \
+    const int m = n / R, step = n / (ns * R);                                                   \
+    for (int j = j0; j < m; j += js) {                                                          \
+        fc_t v[MAX_RADIX];                                                                      \
+        const int k = j % ns;                                                                   \
+        v[0] = in[j * stride];                                                                  \
+        for (int r = 1; r < R; ++r) {                                                           \
+            const fc_t a = in[(j + r * m) * stride];                                            \
+            v[r] = (ns > 1) ? vmul_tw(a, tw[r * k * step]) : a;                                 \
+        }                                                                                       \
+        butterfly(v, R, tw, n);                                                                 \
+        const int d = (j - k) * R + k;                                                          \
+        for (int r = 0; r < R; ++r) out[(d + r * ns) * stride] = v[r];                          \
+    }                                                                                           \
+}
+DEFINE_PASS(pass_local, __local)
+DEFINE_PASS(pass_global, __global)
+
+#ifdef FFT_N
+/* ---- line kernels: all passes of a line in local memory ---------------------------------- */
+
+#define STEP(P, IN, OUT)                                                                        \
+    pass_local(IN, OUT, stride, FFT_N, FFT_R##P, FFT_S##P, j0, js, tw);                         \
+    barrier(CLK_LOCAL_MEM_FENCE);
+
+/* All passes on the line at a[0], a[stride], ... (b: scratch of the same shape); returns the
+ * buffer holding the transform.  Every work-item of the group calls it. */
+inline __local fc_t *fft_line(__local fc_t *a, __local fc_t *b, const int stride,
+                                const int j0, const int js, __global const cplx_t *tw) {
+#if FFT_NPASS > 0
+    STEP(0, a, b)
+#endif
+#if FFT_NPASS > 1
+    STEP(1, b, a)
+#endif
+#if FFT_NPASS > 2
+    STEP(2, a, b)
+#endif
+#if FFT_NPASS > 3
+    STEP(3, b, a)
+#endif
+#if FFT_NPASS > 4
+    STEP(4, a, b)
+#endif
+#if FFT_NPASS > 5
+    STEP(5, b, a)
+#endif
+#if FFT_NPASS > 6
+    STEP(6, a, b)
+#endif
+#if FFT_NPASS > 7
+    STEP(7, b, a)
+#endif
+#if FFT_NPASS > 8
+    STEP(8, a, b)
+#endif
+#if FFT_NPASS > 9
+    STEP(9, b, a)
+#endif
+#if FFT_NPASS > 10
+    STEP(10, a, b)
+#endif
+#if FFT_NPASS > 11
+    STEP(11, b, a)
+#endif
+#if FFT_NPASS > 12
+#error "cm2cl fft: more than 12 passes"
+#endif
+    return (FFT_NPASS % 2) ? b : a;
+}
+
+/* Rows, real -> spectrum.  src: `lines` lines of `px` reals (row pitch px); dst: lines of px/2 + 1
+ * complex.  FFT_HALF: px = 2 FFT_N even, transformed as FFT_N complex points z_i = x_2i + i x_2i+1
+ * then untangled with twr[k] = exp(-pi i k / FFT_N), k <= FFT_N; else px = FFT_N (odd), the line is
+ * widened to complex.  A work-item transforms FFT_VEC neighbouring lines together (fc_t), FFT_C
+ * such work-items per group in local dimension 0; local dimension 1 walks the butterflies (GPUs:
+ * FFT_VEC = FFT_C = 1 and a wide dimension 1). */
+#define ROW_SETUP                                                                               \
+    __local fc_t a_[FFT_N * FFT_C], b_[FFT_N * FFT_C];                                          \
+    const int c = get_local_id(0), stride = FFT_C;                                              \
+    const int j0 = get_local_id(1), js = get_local_size(1);                                     \
+    const size_t first = ((size_t)get_group_id(0) * FFT_C + c) * FFT_VEC;                       \
+    size_t line[FFT_VEC];                                                                       \
+    int ok[FFT_VEC];                                                                            \
+    for (int q = 0; q < FFT_VEC; ++q) {                                                         \
+        ok[q] = first + q < (size_t)lines;                                                      \
+        line[q] = ok[q] ? first + q : 0;                                                        \
+    }                                                                                           \
+    __local fc_t *a = a_ + c, *b = b_ + c;                                                      \
+    fc_parts u;
+
+__kernel void rows_r2c(__global cplx_t *dst, __global const real_t *src,
+                       __global const cplx_t *tw, __global const cplx_t *twr, const int lines) {
+    ROW_SETUP
+#ifdef FFT_HALF
+    const int px = 2 * FFT_N, w = FFT_N + 1;
+    for (int i = j0; i < FFT_N; i += js) {
+        for (int q = 0; q < FFT_VEC; ++q) u.c[q] = vload2(i, src + line[q] * px);
+        a[i * stride] = u.v;
+    }
+#else
+    const int px = FFT_N, w = FFT_N / 2 + 1;
+    for (int i = j0; i < FFT_N; i += js) {
+        for (int q = 0; q < FFT_VEC; ++q) u.c[q] = (cplx_t)(src[line[q] * px + i], 0);
+        a[i * stride] = u.v;
+    }
+#endif
+    barrier(CLK_LOCAL_MEM_FENCE);
+    __local const fc_t *z = fft_line(a, b, stride, j0, js, tw);
+#ifdef FFT_HALF
+    for (int k = j0; k <= FFT_N; k += js) {
+        const fc_t zk = z[(k % FFT_N) * stride], zc = vconj(z[((FFT_N - k) % FFT_N) * stride]);
+        /* X_k = (e - i w^k o) / 2, e = Z_k + conj Z_{N-k}, o = Z_k - conj Z_{N-k} */
+        u.v = (real_t)0.5 * ((zk + zc) + vmul_mi(vmul_tw(zk - zc, twr[k])));
+        for (int q = 0; q < FFT_VEC; ++q) if (ok[q]) dst[line[q] * w + k] = u.c[q];
+    }
+#else
+    for (int k = j0; k < w; k += js) {
+        u.v = z[k * stride];
+        for (int q = 0; q < FFT_VEC; ++q) if (ok[q]) dst[line[q] * w + k] = u.c[q];
+    }
+#endif
+}
+
+/* Rows, spectrum -> real, scaled by `scale`: the inverse of rows_r2c (src: lines of px/2 + 1
+ * complex, Hermitian; dst: lines of px reals).  The imaginary parts that a Hermitian line cannot
+ * have (k = 0, and k = px/2 for even px) are ignored, as numpy's irfft does. */
+__kernel void rows_c2r(__global real_t *dst, __global const cplx_t *src,
+                       __global const cplx_t *tw, __global const cplx_t *twr, const real_t scale,
+                       const int lines) {
+    ROW_SETUP
+    const fc_t re_only = (FC_SIGN + (fc_t)(1)) * (real_t)0.5;   /* (1, 0, 1, 0, ...) */
+#ifdef FFT_HALF
+    const int px = 2 * FFT_N, w = FFT_N + 1;
+    for (int k = j0; k < FFT_N; k += js) {
+        fc_parts un;
+        for (int q = 0; q < FFT_VEC; ++q) {
+            u.c[q] = src[line[q] * w + k];
+            un.c[q] = src[line[q] * w + FFT_N - k];
+        }
+        const fc_t x0 = (k == 0) ? u.v * re_only : u.v, xn = vconj((k == 0) ? un.v * re_only : un.v);
+        /* Z_k = (e + i o) / 2, e = X_k + conj X_{N-k}, o = conj(w^k) (X_k - conj X_{N-k});
+         * stored as conj(2 Z_k) for the inverse */
+        const cplx_t t = twr[k];
+        const fc_t o = vmul_tw(x0 - xn, (cplx_t)(t.x, -t.y));
+        a[k * stride] = vconj((x0 + xn) - vmul_mi(o));
+    }
+#else
+    const int px = FFT_N, w = FFT_N / 2 + 1;
+    for (int k = j0; k < FFT_N; k += js) {
+        for (int q = 0; q < FFT_VEC; ++q) u.c[q] = src[line[q] * w + ((k < w) ? k : FFT_N - k)];
+        const fc_t v = (k == 0) ? u.v * re_only : u.v;
+        a[k * stride] = (k < w) ? vconj(v) : v;   /* conj of the Hermitian extension */
+    }
+#endif
+    barrier(CLK_LOCAL_MEM_FENCE);
+    __local const fc_t *z = fft_line(a, b, stride, j0, js, tw);
+#ifdef FFT_HALF
+    const real_t h = (real_t)0.5 * scale;   /* Z_k carried a factor 2 */
+    for (int i = j0; i < FFT_N; i += js) {
+        u.v = h * vconj(z[i * stride]);
+        for (int q = 0; q < FFT_VEC; ++q) if (ok[q]) vstore2(u.c[q], i, dst + line[q] * px);
+    }
+#else
+    for (int i = j0; i < FFT_N; i += js) {
+        u.v = scale * z[i * stride];
+        for (int q = 0; q < FFT_VEC; ++q) if (ok[q]) dst[line[q] * px + i] = u.c[q].x;
+    }
+#endif
+}
+
+/* Columns, in place: the (ny = FFT_N, w) complex planes of `data`.  A work-item transforms
+ * FFT_VEC neighbouring columns together, FFT_C such work-items per group in local dimension 0
+ * (neighbouring work-items on neighbouring columns: coalesced global reads and writes); local
+ * dimension 1 walks the butterflies.  conj_io != 0 conjugates on load and store (the inverse,
+ * unnormalised). */
+__kernel void cols(__global cplx_t *data, const int w, const int conj_io,
+                   __global const cplx_t *tw) {
+    __local fc_t a_[FFT_N * FFT_C], b_[FFT_N * FFT_C];
+    const int c = get_local_id(0), col = (get_group_id(0) * FFT_C + c) * FFT_VEC;
+    const int j0 = get_local_id(1), js = get_local_size(1);
+    const int full = col + FFT_VEC <= w;
+    __global cplx_t *p = data + (size_t)get_group_id(2) * FFT_N * w + min(col, w - 1);
+    __local fc_t *a = a_ + c, *b = b_ + c;
+    const fc_t sign = conj_io ? FC_SIGN : (fc_t)(1);
+    fc_parts u;
+    for (int i = j0; i < FFT_N; i += js) {
+        __global cplx_t *pi = p + (size_t)i * w;
+        if (full) {
+            u.v = CAT(vload, FC_WIDTH)(0, (__global const real_t *)pi);
+        } else {
+            for (int q = 0; q < FFT_VEC; ++q) u.c[q] = (col + q < w) ? pi[q] : (cplx_t)(0, 0);
+        }
+        a[i * FFT_C] = u.v * sign;
+    }
+    barrier(CLK_LOCAL_MEM_FENCE);
+    __local const fc_t *z = fft_line(a, b, FFT_C, j0, js, tw);
+    if (col >= w) return;
+    for (int i = j0; i < FFT_N; i += js) {
+        __global cplx_t *pi = p + (size_t)i * w;
+        u.v = z[i * FFT_C] * sign;
+        if (full) {
+            CAT(vstore, FC_WIDTH)(u.v, 0, (__global real_t *)pi);
+        } else {
+            for (int q = 0; q < FFT_VEC; ++q) if (col + q < w) pi[q] = u.c[q];
+        }
+    }
+}
+#endif /* FFT_N */
+
+#ifdef FFT_R
+/* ---- pass kernels: one radix-FFT_R pass through global memory ------------------------------ */
+
+/* Lines of n contiguous complex values (line l at l * n), in -> out.  Global size (n / R, lines). */
+__kernel void pass_rows(__global cplx_t *out, __global const cplx_t *in, const int n, const int ns,
+                        __global const cplx_t *tw) {
+    const size_t base = (size_t)get_global_id(1) * n;
+    const int j = get_global_id(0);
+    if (j < n / FFT_R) pass_global(in + base, out + base, 1, n, FFT_R, ns, j, n, tw);
+}
+
+/* Columns of (n, w) planes: element i of column c of plane q at (q n + i) w + c, in -> out.
+ * Global size (w, n / R, planes): neighbouring work-items on neighbouring columns.  conj_in and
+ * conj_out conjugate the values read and written (the first and last pass of an inverse). */
+__kernel void pass_cols(__global cplx_t *out, __global const cplx_t *in, const int n, const int w,
+                        const int ns, const int conj_in, const int conj_out,
+                        __global const cplx_t *tw) {
+    const int c = get_global_id(0), j = get_global_id(1);
+    if (c >= w || j >= n / FFT_R) return;
+    const size_t base = (size_t)get_global_id(2) * n * w + c;
+    const int m = n / FFT_R, step = n / (ns * FFT_R), k = j % ns;
+    cplx_t v[FFT_R];
+    for (int r = 0; r < FFT_R; ++r) {
+        cplx_t a = in[base + (size_t)(j + r * m) * w];
+        if (conj_in) a.y = -a.y;
+        v[r] = (r > 0 && ns > 1) ? cmul(a, tw[r * k * step]) : a;
+    }
+    butterfly(v, FFT_R, tw, n);
+    const int d = (j - k) * FFT_R + k;
+    for (int r = 0; r < FFT_R; ++r) {
+        cplx_t a = v[r];
+        if (conj_out) a.y = -a.y;
+        out[base + (size_t)(d + r * ns) * w] = a;
+    }
+}
+#endif /* FFT_R */
+
+/* ---- packing for the pass path: real lines <-> complex lines in global memory ------------- */
+
+/* z (lines of n complex) <- real lines of px: half (px = 2n): z_i = x_2i + i x_2i+1; else
+ * (px = n) z_i = x_i.  Global size (n, lines). */
+__kernel void pack_real(__global cplx_t *z, __global const real_t *src, const int n, const int even) {
+    const int i = get_global_id(0);
+    if (i >= n) return;
+    const size_t line = get_global_id(1);
+    if (even) z[line * n + i] = vload2(i, src + line * 2 * n);
+    else z[line * n + i] = (cplx_t)(src[line * n + i], 0);
+}
+
+/* Spectrum lines of w complex <- transformed z lines of n complex (see rows_r2c).
+ * Global size (w, lines). */
+__kernel void untangle(__global cplx_t *dst, __global const cplx_t *z, const int n, const int even,
+                       __global const cplx_t *twr) {
+    const int k = get_global_id(0), w = even ? n + 1 : n / 2 + 1;
+    if (k >= w) return;
+    const size_t line = get_global_id(1);
+    __global const cplx_t *zl = z + line * n;
+    if (!even) { dst[line * w + k] = zl[k]; return; }
+    const cplx_t zk = zl[k % n], zc = zl[(n - k) % n];
+    const cplx_t e = (cplx_t)(zk.x + zc.x, zk.y - zc.y), o = (cplx_t)(zk.x - zc.x, zk.y + zc.y);
+    dst[line * w + k] = (real_t)0.5 * (e + mul_mi(cmul(twr[k], o)));
+}
+
+/* Conjugated z lines (n complex) to inverse-transform <- spectrum lines of w complex (see
+ * rows_c2r).  Global size (n, lines). */
+__kernel void tangle(__global cplx_t *z, __global const cplx_t *src, const int n, const int even,
+                     __global const cplx_t *twr) {
+    const int k = get_global_id(0);
+    if (k >= n) return;
+    const size_t line = get_global_id(1);
+    if (even) {
+        __global const cplx_t *X = src + line * (n + 1);
+        const cplx_t xk = X[k], xc = X[n - k];
+        const cplx_t x0 = (k == 0) ? (cplx_t)(xk.x, 0) : xk, xn = (k == 0) ? (cplx_t)(xc.x, 0) : xc;
+        const cplx_t e = (cplx_t)(x0.x + xn.x, x0.y - xn.y), d = (cplx_t)(x0.x - xn.x, x0.y + xn.y);
+        const cplx_t o = cmulc(twr[k], d);
+        z[line * n + k] = (cplx_t)(e.x - o.y, -(e.y + o.x));
+    } else {
+        const int w = n / 2 + 1;
+        __global const cplx_t *X = src + line * w;
+        cplx_t v = (k < w) ? X[k] : X[n - k];
+        if (k == 0) v.y = 0;
+        z[line * n + k] = (k < w) ? (cplx_t)(v.x, -v.y) : v;
+    }
+}
+
+/* Real lines of px <- conjugated inverse-transformed z lines, times `scale` (see rows_c2r).
+ * Global size (n, lines). */
+__kernel void unpack_real(__global real_t *dst, __global const cplx_t *z, const int n, const int even,
+                          const real_t scale) {
+    const int i = get_global_id(0);
+    if (i >= n) return;
+    const size_t line = get_global_id(1);
+    const cplx_t v = z[line * n + i];
+    if (even) vstore2((REAL2)((real_t)0.5 * scale * v.x, (real_t)-0.5 * scale * v.y), i, dst + line * 2 * n);
+    else dst[line * n + i] = scale * v.x;
+}
