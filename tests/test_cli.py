@@ -99,7 +99,7 @@ def test_reconstruct_without_an_object_space_psf_labels_pixels_or_the_given_voxe
     assert resolution_um(out) == pytest.approx((10.0, 12.0), rel=1e-6)
     assert main(["reconstruct", str(meas), "--psf", str(psf), "-o", str(tmp_path / "bad.ome.tif"),
                  "--voxel-size", "0", "5", "5", "--quiet"]) == 2
-    assert "--voxel-size: expected 3 positive numbers" in capsys.readouterr().err
+    assert "--voxel-size: expected 3 positive finite numbers" in capsys.readouterr().err
     assert not (tmp_path / "bad.ome.tif").exists()
 
 

@@ -95,6 +95,8 @@ def test_read_tiff_reads_imagej_and_plain_tiffs_from_elsewhere(tmp_path):
                      metadata={"spacing": 7.0, "unit": "um", "axes": "ZYX"})
     a, m = read_tiff(tmp_path / "ij.tif")
     assert np.array_equal(a, v) and m["voxel_size_um"] == pytest.approx((7.0, 4.0, 2.0)) and m["unit"] == "um"
+    tifffile.imwrite(tmp_path / "ij1.tif", v, imagej=True, resolution=(0.5, 0.5), metadata={"unit": "um", "axes": "ZYX"})
+    assert read_tiff(tmp_path / "ij1.tif")[1]["voxel_size_um"] == pytest.approx((1.0, 2.0, 2.0))
     # ImageJ without a unit: pixels, not um
     tifffile.imwrite(tmp_path / "ijpx.tif", v, imagej=True, metadata={"axes": "ZYX"})
     assert read_tiff(tmp_path / "ijpx.tif")[1]["unit"] == "pixel"

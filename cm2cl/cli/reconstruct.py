@@ -102,8 +102,9 @@ def _volume_geometry(args, pmeta, bin_factor: int):
     depths = pmeta.get("depths_um")
     if args.voxel_size is not None:
         vs, how = tuple(args.voxel_size), "from --voxel-size"
-        if any(not v > 0 for v in vs):
-            raise InputError(f"--voxel-size: expected 3 positive numbers DZ DY DX in um, got {args.voxel_size}")
+        if not all(np.isfinite(v) and v > 0 for v in vs):
+            raise InputError(f"--voxel-size: expected 3 positive finite numbers DZ DY DX in um, "
+                             f"got {args.voxel_size}")
     elif pmeta.get("voxel_size_um") and pmeta["extra"].get("voxel_space") == OBJECT_SPACE:
         vs, how = tuple(pmeta["voxel_size_um"]), f"object-space scale of the PSF '{args.psf}'"
         if len(vs) == 2:

@@ -234,8 +234,8 @@ def read_tiff(path):
             scale = _UM_PER_RESUNIT.get(res_unit)
         if scale:
             dx, dy = scale / res[0], scale / res[1]
-            vs = (dy, dx)
-            if arr.ndim >= 3:
-                vs = (float(ij["spacing"]) * scale if "spacing" in ij else None, dy, dx)
-                vs = None if vs[0] is None else vs
+            if arr.ndim == 2:
+                vs = (dy, dx)
+            elif ij:                              # ImageJ omits spacing when it is 1 (its default)
+                vs = (float(ij.get("spacing", 1.0)) * scale, dy, dx)
     return arr, {"voxel_size_um": vs, "unit": "um" if vs else "pixel", "depths_um": None, "extra": {}}
