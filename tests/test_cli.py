@@ -69,10 +69,15 @@ def test_reconstruct_labels_the_volume_with_the_ground_truths_object_space_scale
     assert resolution_um(out) == pytest.approx(resolution_um(gt), rel=1e-9)
     assert "voxel 250 x 42.24 x 42.24 um" in capsys.readouterr().out
     assert (tmp_path / "vol.log.csv").exists() and (tmp_path / "vol.json").exists()
-    # binning widens the lateral voxel, depths stay
+    with tifffile.TiffFile(out) as tf:
+        assert tf.series[0].dtype == np.float32
+    # binning widens the lateral voxel, depths stay; a float64 solve gives a float64 volume
     out2 = tmp_path / "vol2.ome.tif"
+    dt = "float64" if rt.caps.fp64 else "float32"
     assert main(["reconstruct", str(meas), "--psf", str(psf), "-o", str(out2), "--max-iter", "1", "--bin", "2",
-                 "--quiet"]) == 0
+                 "--dtype", dt, "--quiet"]) == 0
+    with tifffile.TiffFile(out2) as tf:
+        assert tf.series[0].dtype == np.dtype(dt)
     sizes, z = ome_scale(out2)
     assert sizes == pytest.approx((dz, 2 * dy, 2 * dx)) and z == depths
     assert resolution_um(out2) == pytest.approx((2 * dy, 2 * dx), rel=1e-6)
