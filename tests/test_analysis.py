@@ -89,14 +89,55 @@ def test_find_and_match_emitters_subvoxel():
     assert np.sort(det2["position_um"][:, 0])[0] == pytest.approx(-400 + 2.3 * 100, abs=15)
 
 
-def test_mip_png(tmp_path):
-    vol = np.zeros((5, 30, 40))
-    vol[1, 10, 10] = 1.0
-    vol[4, 20, 30] = 0.5
+def _mip_panels(img):
+    """(rows, cols) slices of the XY, YZ and XZ panels of a mip_png figure, found in the image: the
+    panels are black (no signal) and touch, XY top-left, YZ to its right, XZ below it. An opening
+    removes the tick marks, which are black too and stick out of the panels."""
+    from scipy import ndimage
+    dark = ndimage.binary_opening(img.max(axis=2) < 0.05, structure=np.ones((7, 7)))
+    lab, n = ndimage.label(dark)
+    big = 1 + int(np.argmax(ndimage.sum(dark, lab, range(1, n + 1))))
+    block = lab == big
+    rows, cols = np.nonzero(block)
+    r0, r1, c0, c1 = rows.min(), rows.max() + 1, cols.min(), cols.max() + 1
+    cx = c0 + int(np.nonzero(block[r1 - 1, c0:c1])[0].max()) + 1      # XZ (bottom) is as wide as XY
+    ry = r0 + int(np.nonzero(block[r0:r1, c1 - 1])[0].max()) + 1      # YZ (right) is as tall as XY
+    return {"xy": (slice(r0, ry), slice(c0, cx)), "yz": (slice(r0, ry), slice(cx, c1)),
+            "xz": (slice(ry, r1), slice(c0, cx))}
+
+
+def test_mip_png_shows_a_bright_voxel_at_its_place_in_each_panel(tmp_path):
+    """One bright voxel (z=3, y=6, x=30) of a (5, 30, 40) volume: the brightest pixel of each panel is
+    where that voxel projects (XY: row y, col x; YZ: row y, col z; XZ: row z, col x), coloured with the
+    depth colour of plane 3, and nothing else in the panels is lit."""
+    from matplotlib import colormaps
+    from matplotlib.image import imread
+    nz, ny, nx = 5, 30, 40
+    z, y, x = 3, 6, 30
+    vol = np.zeros((nz, ny, nx))
+    vol[z, y, x] = 1.0
     p = an.mip_png(vol, tmp_path / "mip.png", voxel_size_um=(100, 5, 5), depths_um=[-200, -100, 0, 100, 200],
                    title="test")
-    data = p.read_bytes()
-    assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 1000
+    img = imread(p)[..., :3]
+    panels = _mip_panels(img)
+    # (row fraction, col fraction) of the voxel centre in each panel; z runs left->right (YZ), down (XZ)
+    where = {"xy": ((y + 0.5) / ny, (x + 0.5) / nx), "yz": ((y + 0.5) / ny, (z + 0.5) / nz),
+             "xz": ((z + 0.5) / nz, (x + 0.5) / nx)}
+    colour = colormaps["turbo"](z / (nz - 1))[:3]
+    for name, (rs, cs) in panels.items():
+        panel = img[rs, cs]
+        h, w = panel.shape[:2]
+        fr, fc = where[name]
+        er, ec = fr * h, fc * w
+        lit = panel.max(axis=2) > 0.3
+        r, c = np.nonzero(lit)
+        assert lit.any(), name
+        # the lit pixels form one spot, centred on the voxel (within half a voxel of the panel's grid)
+        half_r = 0.5 * h / {"xy": ny, "yz": ny, "xz": nz}[name] + 1
+        half_c = 0.5 * w / {"xy": nx, "yz": nz, "xz": nx}[name] + 1
+        assert abs(r.mean() - er) < half_r and abs(c.mean() - ec) < half_c, (name, r.mean(), er, c.mean(), ec)
+        assert np.ptp(r) <= 2 * half_r + 1 and np.ptp(c) <= 2 * half_c + 1, name
+        assert np.allclose(panel[int(er), int(ec)], colour, atol=0.02), (name, panel[int(er), int(ec)], colour)
 
 
 def test_bad_inputs():

@@ -1,13 +1,18 @@
 """The command line as a user runs it: outputs complete or absent, one-line errors."""
 
+import io as _io
 import json
+import sys
 
 import numpy as np
+import pytest
 import tifffile
 
 from cm2cl import io
 from cm2cl.cli import main
+from cm2cl.cli.reconstruct import Progress
 from test_admm import bead_problem
+from test_io import ome_scale, resolution_um
 
 
 def _files(tmp_path):
@@ -47,3 +52,90 @@ def test_reconstruct_bad_input_writes_nothing(rt, tmp_path, capsys):
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and msg in err[0] and err[0].startswith("cm2cl: error:")
         assert not out.exists() and not (tmp_path / "out.log.csv").exists()
+
+
+def test_reconstruct_labels_the_volume_with_the_ground_truths_object_space_scale(rt, tmp_path, capsys):
+    """Defect 1: the volume was labelled with the sensor pixel (17.6 um) while the ground truth's grid is
+    42.24 um in object space. Compared as Fiji reads them: OME PhysicalSize* / PositionZ and the TIFF
+    resolution tags."""
+    import cm2cl.simulate as sim
+    sim.simulate("demo_beads", tmp_path / "s", seed=2)
+    meas, psf, gt = (tmp_path / "s" / n for n in ("measurement.ome.tif", "psf.ome.tif", "ground_truth.ome.tif"))
+    out = tmp_path / "vol.ome.tif"
+    assert main(["reconstruct", str(meas), "--psf", str(psf), "-o", str(out), "--max-iter", "2", "--quiet"]) == 0
+    (dz, dy, dx), depths = ome_scale(gt)
+    assert dy == pytest.approx(42.24) and depths == [-500, -250, 0, 250, 500]
+    assert ome_scale(out) == ome_scale(gt)
+    assert resolution_um(out) == pytest.approx(resolution_um(gt), rel=1e-9)
+    assert "voxel 250 x 42.24 x 42.24 um" in capsys.readouterr().out
+    assert (tmp_path / "vol.log.csv").exists() and (tmp_path / "vol.json").exists()
+    with tifffile.TiffFile(out) as tf:
+        assert tf.series[0].dtype == np.float32
+    # binning widens the lateral voxel, depths stay; a float64 solve gives a float64 volume
+    out2 = tmp_path / "vol2.ome.tif"
+    dt = "float64" if rt.caps.fp64 else "float32"
+    assert main(["reconstruct", str(meas), "--psf", str(psf), "-o", str(out2), "--max-iter", "1", "--bin", "2",
+                 "--dtype", dt, "--quiet"]) == 0
+    with tifffile.TiffFile(out2) as tf:
+        assert tf.series[0].dtype == np.dtype(dt)
+    sizes, z = ome_scale(out2)
+    assert sizes == pytest.approx((dz, 2 * dy, 2 * dx)) and z == depths
+    assert resolution_um(out2) == pytest.approx((2 * dy, 2 * dx), rel=1e-6)
+
+
+def test_reconstruct_without_an_object_space_psf_labels_pixels_or_the_given_voxel(rt, tmp_path, capsys):
+    meas, psf = _files(tmp_path)           # plain TIFFs without scale, like a DiffuserCam PSF
+    out = tmp_path / "px.ome.tif"
+    assert main(["reconstruct", str(meas), "--psf", str(psf), "-o", str(out), "--offset", "100",
+                 "--max-iter", "2", "--quiet"]) == 0
+    assert ome_scale(out) == ((None, None, None), []) and resolution_um(out) is None
+    assert "unit pixel" in capsys.readouterr().out
+    # a PSF in um on the sensor (as cm2cl's psf.tif was): not an object-space scale either
+    p, _ = io.read_tiff(psf)
+    io.write_tiff(tmp_path / "sensor_psf.ome.tif", p, voxel_size_um=(250.0, 17.6, 17.6), depths_um=[0, 1, 2, 3])
+    assert main(["reconstruct", str(meas), "--psf", str(tmp_path / "sensor_psf.ome.tif"), "-o", str(out),
+                 "--offset", "100", "--max-iter", "2", "--quiet"]) == 0
+    assert ome_scale(out) == ((None, None, None), [0, 1, 2, 3])
+    assert "no object-space voxel size" in capsys.readouterr().out
+    # an explicit voxel size of the PSF grid, times --bin laterally
+    assert main(["reconstruct", str(meas), "--psf", str(psf), "-o", str(out), "--offset", "100",
+                 "--max-iter", "2", "--voxel-size", "100", "5", "6", "--bin", "2", "--quiet"]) == 0
+    assert ome_scale(out)[0] == pytest.approx((100.0, 10.0, 12.0))
+    assert resolution_um(out) == pytest.approx((10.0, 12.0), rel=1e-6)
+    assert main(["reconstruct", str(meas), "--psf", str(psf), "-o", str(tmp_path / "bad.ome.tif"),
+                 "--voxel-size", "0", "5", "5", "--quiet"]) == 2
+    assert "--voxel-size: expected 3 positive finite numbers" in capsys.readouterr().err
+    assert not (tmp_path / "bad.ome.tif").exists()
+
+
+class _Terminal(_io.StringIO):
+    def isatty(self):
+        return True
+
+
+def test_progress_is_one_tqdm_bar_on_a_terminal_only(rt, tmp_path, monkeypatch, capsys):
+    row = {"iter": 1, "objective": 1.5, "primal": 0.1, "dual": 0.2}
+    term = _Terminal()
+    bar = Progress(3, quiet=False, stream=term)
+    for i in (1, 2, 3):
+        bar({**row, "iter": i})
+    bar.close()
+    text = term.getvalue()
+    assert "3/3" in text and "obj=1.5000e+00" in text and "primal=1.00e-01" in text and "dual=2.00e-01" in text
+    for quiet, stream in ((True, _Terminal()), (False, _io.StringIO())):
+        p = Progress(3, quiet=quiet, stream=stream)
+        p(row)
+        p.close()
+        assert stream.getvalue() == ""
+    # through the command: a bar on a terminal, nothing with --quiet
+    meas, psf = _files(tmp_path)
+    argv = ["reconstruct", str(meas), "--psf", str(psf), "-o", str(tmp_path / "v.ome.tif"), "--offset", "100",
+            "--max-iter", "3", "--tol", "0"]
+    term = _Terminal()
+    monkeypatch.setattr(sys, "stderr", term)
+    assert main(argv) == 0
+    assert "ADMM" in term.getvalue() and "3/3" in term.getvalue() and "obj=" in term.getvalue()
+    term = _Terminal()
+    monkeypatch.setattr(sys, "stderr", term)
+    assert main(argv + ["--quiet"]) == 0
+    assert term.getvalue() == ""

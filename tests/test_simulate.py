@@ -306,24 +306,56 @@ def test_objects_follow_their_geometry():
 # outputs, io, CLI
 # ---------------------------------------------------------------------------------------------
 
+def napari_points_csv(path):
+    """Points as napari's builtin CSV reader gives them (napari_builtins/io/_read.py: ``read_csv``,
+    ``_guess_layer_type_from_column_names``, ``_points_csv_to_layerdata``): the header names the
+    columns; 'points' when 'axis-0' and 'axis-1' are among them (and not the shapes set); the
+    ``axis-*`` columns, in file order, are the coordinates; the other columns, except a first one
+    named 'index', become properties."""
+    import csv
+    with open(path, newline="") as f:
+        reader = csv.reader(f, delimiter=",")
+        names = next(reader)
+        table = np.array(list(reader))
+    assert not {"index", "shape-type", "vertex-index", "axis-0", "axis-1"} <= set(names)
+    assert {"axis-0", "axis-1"} <= set(names), f"napari would not read {names} as points"
+    axes = np.array([n.startswith("axis-") for n in names])
+    data = table[:, axes].astype(float)
+    props = {n: table[:, i].astype(float) for i, n in enumerate(names)
+             if not axes[i] and not (i == 0 and n == "index")}
+    return data, props
+
+
 def test_simulate_writes_tiffs_with_geometry_and_a_record(tmp_path):
+    from test_io import ome_scale, resolution_um
     out = tmp_path / "demo"
     rec = sim.simulate("demo_beads", out, seed=3)
     names = sorted(p.name for p in out.iterdir())
-    assert names == ["emitters.csv", "ground_truth.tif", "measurement.tif", "psf.tif", "simulation.json"]
-    meas, mm = read_tiff(out / "measurement.tif")
-    assert meas.dtype == np.uint16 and mm["voxel_size_um"] == pytest.approx((17.6, 17.6))
-    psf, pm = read_tiff(out / "psf.tif")
-    assert psf.shape == (5, 243, 324) and pm["depths_um"] == [-500, -250, 0, 250, 500]
-    assert pm["voxel_size_um"] == pytest.approx((250.0, 17.6, 17.6))
-    gt, gm = read_tiff(out / "ground_truth.tif")
-    assert gm["voxel_size_um"] == pytest.approx((250.0, 17.6 * 12 / 5, 17.6 * 12 / 5))
+    assert names == ["emitters.csv", "ground_truth.ome.tif", "measurement.ome.tif", "psf.ome.tif",
+                     "simulation.json"]
+    obj = 17.6 * 12 / 5                  # object-space voxel: sensor pixel / magnification (l0 / l)
+    depths = [-500, -250, 0, 250, 500]
+    # scale as Fiji (OME via Bio-Formats; resolution tags) reads it, not through cm2cl's reader
+    meas, _ = read_tiff(out / "measurement.ome.tif")
+    assert meas.dtype == np.uint16 and resolution_um(out / "measurement.ome.tif") == pytest.approx((17.6, 17.6))
+    for name in ("psf.ome.tif", "ground_truth.ome.tif"):
+        sizes, z = ome_scale(out / name)
+        assert sizes == pytest.approx((250.0, obj, obj)) and z == pytest.approx(depths), name
+        assert resolution_um(out / name) == pytest.approx((obj, obj), rel=1e-6), name
+    psf, pm = read_tiff(out / "psf.ome.tif")
+    assert psf.shape == (5, 243, 324) and pm["extra"]["voxel_space"] == "object"
+    gt, gm = read_tiff(out / "ground_truth.ome.tif")
     assert gm["extra"]["kind"] == "ground_truth"
     saved = json.loads((out / "simulation.json").read_text())
     assert saved["seed"] == 3 and saved == rec
+    assert saved["psf"]["voxel_size_um"] == pytest.approx([250.0, obj, obj]) and saved["psf"]["depths_um"] == depths
     assert [e["name"] for e in saved["effects_applied"]] == ["noise"]
-    em = np.loadtxt(out / "emitters.csv", delimiter=",", skiprows=1)
-    assert em.shape == (12, 8)
+    # emitters.csv as napari reads it: points at the beads' voxels of the ground truth, physical columns kept
+    pts, props = napari_points_csv(out / "emitters.csv")
+    assert pts.shape == (12, 3) and set(props) == {"x_um", "y_um", "z_um", "brightness", "diameter_um"}
+    idx = np.round(pts).astype(int)
+    assert (gt[idx[:, 0], idx[:, 1], idx[:, 2]] > 0.25 * gt.max()).all()
+    assert np.allclose(np.interp(pts[:, 0], np.arange(5), depths), props["z_um"], atol=1e-3 * 250)
     assert np.array_equal(meas, sim.simulate_scene("demo_beads", seed=3).measurement)
     # a second run into the same directory replaces it
     sim.simulate("demo_beads", out, seed=4)
@@ -343,28 +375,6 @@ def test_interrupted_simulation_leaves_no_complete_output(tmp_path, monkeypatch)
     with pytest.raises(OSError):
         sim.simulate(scene([bead()]), tmp_path / "out", seed=0)
     assert list(tmp_path.iterdir()) == []
-
-
-def test_tiff_roundtrip_and_errors(tmp_path):
-    v = np.random.default_rng(0).random((3, 5, 7)).astype(np.float32)
-    write_tiff(tmp_path / "v.tif", v, voxel_size_um=(100.0, 5.28, 5.28), depths_um=[-100, 0, 100],
-               extra={"kind": "x"})
-    a, m = read_tiff(tmp_path / "v.tif")
-    assert np.array_equal(a, v) and m["voxel_size_um"] == pytest.approx((100.0, 5.28, 5.28))
-    assert m["depths_um"] == [-100, 0, 100] and m["extra"] == {"kind": "x"}
-    d = v.astype(np.float64)                      # not an ImageJ type: written as plain TIFF, unchanged
-    write_tiff(tmp_path / "d.tif", d, voxel_size_um=(1.0, 2.0, 3.0))
-    a, m = read_tiff(tmp_path / "d.tif")
-    assert a.dtype == np.float64 and np.array_equal(a, d) and m["voxel_size_um"] == pytest.approx((1.0, 2.0, 3.0))
-    import tifffile
-    tifffile.imwrite(tmp_path / "ij.tif", v, imagej=True, resolution=(0.5, 0.5), metadata={"spacing": 7.0, "unit": "um"})
-    a, m = read_tiff(tmp_path / "ij.tif")
-    assert m["voxel_size_um"] == pytest.approx((7.0, 2.0, 2.0))
-    with pytest.raises(InputError, match="no such file"):
-        read_tiff(tmp_path / "missing.tif")
-    (tmp_path / "bad.tif").write_text("not a tiff")
-    with pytest.raises(InputError, match="not a readable TIFF"):
-        read_tiff(tmp_path / "bad.tif")
 
 
 def test_cli_simulate_and_list(tmp_path, capsys):
@@ -465,7 +475,12 @@ def test_demo_recovers_the_beads(tmp_path):
     assert s["lateral_error_um"]["rms"] < 0.3 * s["voxel_size_um"][1]
     assert s["axial_error_um"]["rms"] < 0.5 * s["voxel_size_um"][0]
     names = sorted(p.name for p in (tmp_path / "demo").iterdir())
-    assert names == ["demo.json", "mip_ground_truth.png", "mip_reconstruction.png", "reconstruction.tif",
+    assert names == ["demo.json", "mip_ground_truth.png", "mip_reconstruction.png", "reconstruction.ome.tif",
                      "reconstruction_log.csv", "simulation"]
-    vol, meta = read_tiff(tmp_path / "demo" / "reconstruction.tif")
-    assert vol.shape == (5, 243, 324) and meta["depths_um"] == [-500, -250, 0, 250, 500]
+    vol, _ = read_tiff(tmp_path / "demo" / "reconstruction.ome.tif")
+    assert vol.shape == (5, 243, 324)
+    # the reconstruction carries the ground truth's object-space scale, as other programs read it
+    from test_io import ome_scale
+    assert ome_scale(tmp_path / "demo" / "reconstruction.ome.tif") == \
+        ome_scale(tmp_path / "demo" / "simulation" / "ground_truth.ome.tif")
+    assert ome_scale(tmp_path / "demo" / "reconstruction.ome.tif")[1] == [-500, -250, 0, 250, 500]

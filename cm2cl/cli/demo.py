@@ -2,7 +2,7 @@
 
 Prints the recovered vs true emitters (count, lateral and axial position errors in um) and the time
 taken, and writes into OUTDIR: ``simulation/`` (measurement, PSF, ground truth, record),
-``reconstruction.tif``, depth-colour-coded orthogonal MIPs of the reconstruction and of the ground
+``reconstruction.ome.tif`` (OME-TIFF with the object-space voxel size and depths), depth-colour-coded orthogonal MIPs of the reconstruction and of the ground
 truth (PNG), and ``demo.json`` (written last).
 """
 
@@ -57,7 +57,7 @@ def demo(outdir="cm2cl-demo", *, device=None, seed=None, max_iter: int = RECON["
          verbose: bool = True) -> dict:
     """Run the demo; returns its summary (also written to OUTDIR/demo.json)."""
     from .. import analysis
-    from ..io import StagedOutput, check_output_dir, write_tiff
+    from ..io import OBJECT_SPACE, StagedOutput, check_output_dir, write_tiff
     from ..simulate import load_scene, simulate_scene, write_simulation
     from ..solver import reconstruct
 
@@ -82,7 +82,8 @@ def demo(outdir="cm2cl-demo", *, device=None, seed=None, max_iter: int = RECON["
     say(f"  reconstructing (ADMM, l1 {params['l1']:g}, TV {params['tv']:g}, up to {params['max_iter']} iterations) ...",
         flush=True)
     t = time.perf_counter()
-    rec = reconstruct(sim.measurement.astype(np.float32), sim.psf, device=device, **params)
+    rec = reconstruct(sim.measurement.astype(np.float32), sim.psf, device=device,
+                      voxel_size_um=sim.voxel_size_um, depths_um=sim.depths_um, **params)
     t_rec = time.perf_counter() - t
     dev = rec.info.get("device", "?")
     say(f"  reconstructed on {dev} in {t_rec:.1f} s ({rec.iterations} iterations, stop: {rec.info.get('stop', '?')})")
@@ -136,9 +137,10 @@ def demo(outdir="cm2cl-demo", *, device=None, seed=None, max_iter: int = RECON["
     with StagedOutput(out) as stage:
         tmp = stage.dir
         write_simulation(sim, tmp / "simulation")
-        write_tiff(tmp / "reconstruction.tif", vol.astype(np.float32), voxel_size_um=sim.voxel_size_um,
-                   depths_um=sim.depths_um, extra={"kind": "reconstruction", "scene": scene.name,
-                                                   "params": params, "scaling": rec.scaling})
+        write_tiff(tmp / "reconstruction.ome.tif", vol.astype(np.float32), voxel_size_um=rec.voxel_size_um,
+                   depths_um=rec.depths_um,
+                   extra={"kind": "reconstruction", "scene": scene.name, "voxel_space": OBJECT_SPACE,
+                          "params": params, "scaling": rec.scaling})
         title = f"{scene.name}: reconstruction ({m['n_matched']}/{m['n_true']} beads matched)"
         region = analysis.content_region(sim.ground_truth, margin=12)
         analysis.mip_png(vol, tmp / "mip_reconstruction.png", sim.voxel_size_um, sim.depths_um, title=title,
@@ -147,9 +149,9 @@ def demo(outdir="cm2cl-demo", *, device=None, seed=None, max_iter: int = RECON["
                          title=f"{scene.name}: ground truth", gamma=0.6, region=region)
         rec.write_log(tmp / "reconstruction_log.csv")
         summary["seconds"]["total"] = time.perf_counter() - t0
-        names = ["simulation", "reconstruction.tif", "reconstruction_log.csv", "mip_reconstruction.png",
+        names = ["simulation", "reconstruction.ome.tif", "reconstruction_log.csv", "mip_reconstruction.png",
                  "mip_ground_truth.png"]
         stage.publish(names, "demo.json", json.dumps(summary, indent=2))
-    say(f"  total {summary['seconds']['total']:.1f} s; wrote {out}/: simulation/, reconstruction.tif, "
+    say(f"  total {summary['seconds']['total']:.1f} s; wrote {out}/: simulation/, reconstruction.ome.tif, "
         "mip_reconstruction.png, mip_ground_truth.png, reconstruction_log.csv, demo.json")
     return summary

@@ -1,11 +1,16 @@
-"""``cm2cl reconstruct MEAS.tif --psf PSF.tif -o OUT.tif``: one frame, with a progress line and the
-iteration log written next to the output (OUT.log.csv and OUT.json)."""
+"""``cm2cl reconstruct MEAS.tif --psf PSF.ome.tif -o OUT.ome.tif``: one frame, with a progress bar and
+the iteration log written next to the output (OUT.log.csv and OUT.json).
+
+The volume is OME-TIFF in the dtype of the solve (float32, or float64 with ``--dtype float64``). Its
+physical scale comes from the PSF stack when the PSF says its voxel size is object-space (the
+simulator's psf.ome.tif does), times ``--bin`` laterally, or from ``--voxel-size DZ DY DX``; without
+either the volume is labelled in pixels (a PSF measured on a camera gives no object-space scale).
+Depths come from the PSF's plane positions (OME ``Plane PositionZ``) when it has them."""
 
 from __future__ import annotations
 
 import os
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -21,7 +26,8 @@ def register(sub):
                        description=__doc__)
     r.add_argument("measurement", help="2D TIFF of the measurement")
     r.add_argument("--psf", required=True, help="3D TIFF of the PSF stack (nz, My, Mx), same sensor grid")
-    r.add_argument("-o", "--output", required=True, help="output TIFF of the volume")
+    r.add_argument("-o", "--output", required=True,
+                   help="output OME-TIFF of the volume (name it *.ome.tif so that Fiji opens it with Bio-Formats)")
     g = r.add_argument_group("problem")
     g.add_argument("--l1", type=float, default=_DEFAULTS.l1, help="l1 weight (normalised problem)")
     g.add_argument("--tv", type=float, default=_DEFAULTS.tv, help="3D TV weight (normalised problem)")
@@ -45,7 +51,11 @@ def register(sub):
     g = r.add_argument_group("output")
     g.add_argument("--padded", action="store_true",
                    help="write the whole padded grid (emitters outside the field of view) instead of the FOV")
-    g.add_argument("--quiet", action="store_true", help="no progress line")
+    g.add_argument("--voxel-size", type=float, nargs=3, metavar=("DZ", "DY", "DX"), default=None,
+                   help="object-space voxel size in um of the PSF stack's grid (before --bin); overrides the "
+                        "PSF's own; without it and without an object-space PSF the volume is in pixels")
+    g.add_argument("--quiet", action="store_true",
+                   help="no progress bar (there is none either when stderr is not a terminal)")
     r.set_defaults(func=command)
 
 
@@ -61,32 +71,48 @@ def _offset(text: str):
 
 
 class Progress:
-    """One status line on stderr: iteration, objective, residuals, time."""
+    """One tqdm bar on ``stream`` (stderr): iterations, with objective and primal / dual residuals as
+    its postfix. Off with ``--quiet`` and when the stream is not a terminal (logs, pipes, batch jobs):
+    the summary line and OUT.log.csv say how the run went."""
 
-    def __init__(self, total: int, enabled: bool):
-        self.total, self.enabled = total, enabled
-        self.tty = sys.stderr.isatty()
-        self.last = 0.0
+    def __init__(self, total: int, quiet: bool, stream=None):
+        stream = sys.stderr if stream is None else stream
+        self.bar = None
+        if not quiet and stream.isatty():
+            from tqdm import tqdm
+
+            self.bar = tqdm(total=total, file=stream, desc="ADMM", unit="it", dynamic_ncols=True)
 
     def __call__(self, row):
-        if not self.enabled:
+        if self.bar is None:
             return
-        it = row["iter"]
-        frac = it / self.total
-        bar = "#" * int(20 * frac) + "." * (20 - int(20 * frac))
-        line = (f"[{bar}] {it}/{self.total}  obj {row['objective']:.4e}  primal {row['primal']:.2e}  "
-                f"dual {row['dual']:.2e}  change {row['rel_change']:.1e}  {row['seconds']:.1f} s")
-        now = time.monotonic()
-        if self.tty:
-            sys.stderr.write("\r" + line)
-            sys.stderr.flush()
-        elif now - self.last > 2.0 or it == self.total:
-            print(line, file=sys.stderr)
-            self.last = now
+        self.bar.set_postfix(obj=f"{row['objective']:.4e}", primal=f"{row['primal']:.2e}",
+                             dual=f"{row['dual']:.2e}", refresh=False)
+        self.bar.update(int(row["iter"]) - self.bar.n)
 
     def close(self):
-        if self.enabled and self.tty:
-            sys.stderr.write("\n")
+        if self.bar is not None:
+            self.bar.close()
+
+
+def _volume_geometry(args, pmeta, bin_factor: int):
+    """(voxel_size_um or None, depths_um or None, how): the volume's object-space scale."""
+    from ..io import OBJECT_SPACE
+
+    depths = pmeta.get("depths_um")
+    if args.voxel_size is not None:
+        vs, how = tuple(args.voxel_size), "from --voxel-size"
+        if not all(np.isfinite(v) and v > 0 for v in vs):
+            raise InputError(f"--voxel-size: expected 3 positive finite numbers DZ DY DX in um, "
+                             f"got {args.voxel_size}")
+    elif pmeta.get("voxel_size_um") and pmeta["extra"].get("voxel_space") == OBJECT_SPACE:
+        vs, how = tuple(pmeta["voxel_size_um"]), f"object-space scale of the PSF '{args.psf}'"
+        if len(vs) == 2:
+            return None, depths, "unit pixel: the PSF is a single plane without a z spacing; give --voxel-size"
+    else:
+        return None, depths, ("unit pixel: the PSF has no object-space voxel size; give --voxel-size DZ DY DX "
+                              "(um) to label the volume")
+    return (vs[0], vs[1] * bin_factor, vs[2] * bin_factor), depths, how
 
 
 def command(args) -> int:
@@ -96,7 +122,7 @@ def command(args) -> int:
 
     out = Path(args.output)
     if out.suffix.lower() not in (".tif", ".tiff"):
-        raise InputError(f"--output '{out}': must end in .tif or .tiff")
+        raise InputError(f"--output '{out}': must end in .ome.tif, .tif or .tiff")
     if not out.parent.exists():
         raise InputError(f"--output '{out}': folder '{out.parent}' does not exist")
     for src in (args.measurement, args.psf):
@@ -108,6 +134,7 @@ def command(args) -> int:
         raise InputError(f"measurement '{args.measurement}': expected a 2D image, got shape {meas.shape}")
     if psf.ndim not in (2, 3):
         raise InputError(f"psf '{args.psf}': expected a (nz, My, Mx) stack, got shape {psf.shape}")
+    vs, depths, how = _volume_geometry(args, pmeta, args.bin)
     off = _offset(args.offset)
     y = prepare(meas, offset=off, bin_factor=args.bin, name=f"measurement '{args.measurement}'")
     h = prepare(psf, offset=off, bin_factor=args.bin, name=f"psf '{args.psf}'")
@@ -115,32 +142,37 @@ def command(args) -> int:
     if y.shape != h.shape[1:]:
         raise InputError(f"measurement '{args.measurement}': shape {y.shape} does not match the PSF "
                          f"'{args.psf}' sensor grid {h.shape[1:]}")
+    if depths is not None and len(depths) != h.shape[0]:
+        raise InputError(f"psf '{args.psf}': {len(depths)} plane positions for {h.shape[0]} planes")
     dt = np.dtype(args.dtype)
     params = dict(l1=args.l1, tv=args.tv, tv_axial_weight=args.tv_axial_weight,
                   tv_isotropic=not args.anisotropic, tv_iters=args.tv_iters, max_iter=args.max_iter,
                   tol=args.tol, patience=args.patience)
     if args.no_balance:
         params["balance_factor"] = 0.0
-    progress = Progress(args.max_iter, not args.quiet)
+    progress = Progress(args.max_iter, args.quiet)
     try:
         rec = reconstruct(y.astype(dt), h.astype(dt), dtype=dt, backend=args.backend, device=args.device,
-                          callback=progress, **params)
+                          callback=progress, voxel_size_um=vs, depths_um=depths, **params)
     finally:
         progress.close()
-    vol = (rec.volume_padded if args.padded else rec.volume).astype(np.float32)
-    vs = tuple(pmeta.get("voxel_size_um") or (1.0, 1.0, 1.0))
-    vs = (1.0,) + vs if len(vs) == 2 else vs
-    vs = (vs[0], vs[1] * args.bin, vs[2] * args.bin)
+    # the volume in the dtype of the solve (the solver's rescaling may promote it to float64)
+    vol = (rec.volume_padded if args.padded else rec.volume).astype(dt, copy=False)
     extra = {"what": "cm2cl reconstruction", "measurement": str(args.measurement), "psf": str(args.psf),
-             "params": rec.params, "scaling": rec.scaling, "info": rec.info, "padded": bool(args.padded)}
-    stem = out.with_suffix("")
+             "params": rec.params, "scaling": rec.scaling, "info": rec.info, "padded": bool(args.padded),
+             "voxel_space": io.OBJECT_SPACE if rec.voxel_size_um else None, "scale": how}
+    stem = io.tiff_stem(out)
     tmp = out.with_name(out.name + ".partial")
-    io.write_tiff(tmp, vol, voxel_size_um=vs, depths_um=pmeta.get("depths_um"), extra=extra)
+    io.write_tiff(tmp, vol, voxel_size_um=rec.voxel_size_um, depths_um=rec.depths_um, extra=extra)
     rec.write_log(Path(f"{stem}.log.csv"))
     rec.write_log(Path(f"{stem}.json"))
     os.replace(tmp, out)  # the volume appears only when complete
     last = rec.log[-1]
-    print(f"{out}: {vol.shape} float32 volume, {rec.iterations} iterations ({rec.info['stop']}), "
+    if rec.voxel_size_um:
+        scale = "voxel {:g} x {:g} x {:g} um (z, y, x; {})".format(*rec.voxel_size_um, how)
+    else:
+        scale = how
+    print(f"{out}: {vol.shape} {vol.dtype} volume, {scale}; {rec.iterations} iterations ({rec.info['stop']}), "
           f"objective {last['objective']:.4e}, {last['seconds']:.1f} s on {rec.info['device']}; "
           f"log: {stem}.log.csv, {stem}.json")
     return 0

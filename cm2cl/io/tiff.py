@@ -1,15 +1,28 @@
-"""TIFF in and out with voxel sizes (um) and depths in the metadata.
+"""TIFF in and out with physical voxel sizes (um) and depths that other programs read.
 
-Files are ImageJ hyperstacks where ImageJ can hold the data type (uint8, uint16, float32): the
-lateral pixel size goes into the resolution tags, dz into ImageJ's ``spacing``, one label per slice
-("z=-500.0 um"), and a JSON record (voxel sizes, depths, extra fields) into ImageJ's ``Info``
-property. Other dtypes (float64, int32, ...) are written unchanged as plain TIFF with the same JSON
-record as the image description. :func:`read_tiff` reads both, and plain TIFFs from elsewhere.
+:func:`write_tiff` writes OME-TIFF (the array keeps its dtype: uint8/16, float32, float64, ...):
+
+- OME-XML ``Pixels PhysicalSizeX/Y/Z`` with ``PhysicalSize*Unit="µm"`` and one ``Plane PositionZ``
+  (um) per z plane: read by Fiji (Bio-Formats, which Fiji uses for ``*.ome.tif``), napari's OME
+  readers, tifffile and QuPath;
+- the TIFF resolution tags (``XResolution``/``YResolution`` in pixels per cm,
+  ``ResolutionUnit=CENTIMETER``): the lateral scale for readers that ignore OME, such as ImageJ's own
+  TIFF opener (it shows the size in cm);
+- a JSON record (voxel sizes, depths, ``extra``) as the OME ``Image Description``.
+
+A volume whose physical scale is not known (``voxel_size_um=None``) is written without
+``PhysicalSize*`` and with ``ResolutionUnit=NONE``: readers show it in pixels, never in made-up um.
+
+An OME-TIFF cannot also be an ImageJ hyperstack (both live in the first ImageDescription), so ImageJ's
+own opener sees no z spacing; name files ``*.ome.tif`` so that Fiji opens them with Bio-Formats.
+
+:func:`read_tiff` reads these files, the ImageJ hyperstacks cm2cl wrote before, and plain TIFFs.
 """
 
 from __future__ import annotations
 
 import json
+import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import numpy as np
@@ -17,65 +30,159 @@ import numpy as np
 from ..errors import InputError
 from .staging import jsonable
 
-__all__ = ["write_tiff", "read_tiff"]
+__all__ = ["write_tiff", "read_tiff", "tiff_stem", "OBJECT_SPACE"]
 
-_IMAGEJ_DTYPES = (np.dtype(np.uint8), np.dtype(np.uint16), np.dtype(np.float32))
 _KEY = "cm2cl"
+#: ``extra["voxel_space"]`` of a PSF stack whose voxel size is that of the object-space reconstruction
+#: grid (the simulator's psf.ome.tif); ``cm2cl reconstruct`` gives such a scale to the volume
+OBJECT_SPACE = "object"
+#: lengths OME may use, in um (OME UnitsLength symbols)
+_UM_PER = {"µm": 1.0, "um": 1.0, "micron": 1.0, "microns": 1.0, "\u03bcm": 1.0, "nm": 1e-3, "mm": 1e3,
+           "cm": 1e4, "m": 1e6}
+#: TIFF ResolutionUnit: 2 inch, 3 centimetre
+_UM_PER_RESUNIT = {2: 2.54e4, 3: 1e4}
 
 
-def write_tiff(path, array, voxel_size_um=(1.0, 1.0, 1.0), depths_um=None, extra=None) -> Path:
-    """Write a 2D (y, x) or 3D (z, y, x) array as TIFF with its geometry.
+def tiff_stem(path) -> Path:
+    """``path`` without its TIFF suffix (``vol.ome.tif`` -> ``vol``, ``vol.tif`` -> ``vol``)."""
+    p = Path(path)
+    name = p.name
+    for suffix in (".ome.tiff", ".ome.tif", ".tiff", ".tif"):
+        if name.lower().endswith(suffix):
+            return p.with_name(name[: -len(suffix)])
+    return p
 
-    Parameters
-    ----------
-    path : output file.
-    array : numpy array; written with its own dtype (never converted).
-    voxel_size_um : (dz, dy, dx) in um; for a 2D image (dy, dx) or (dz, dy, dx) (dz ignored).
-    depths_um : optional depth of each z plane (um), e.g. from the nominal working distance.
-    extra : optional JSON-serialisable dict stored alongside (e.g. what the data is).
-    """
-    a = np.asarray(array)
-    if a.ndim not in (2, 3) or a.size == 0:
-        raise InputError(f"write_tiff '{path}': expected a non-empty 2D or 3D array, got shape {a.shape}")
-    vs = [float(v) for v in voxel_size_um]
-    if len(vs) not in (2, 3) or (a.ndim == 3 and len(vs) != 3):
-        raise InputError(f"write_tiff '{path}': voxel_size_um must be (dz, dy, dx) for a 3D array, got {voxel_size_um!r}")
-    if any(not np.isfinite(v) or v <= 0 for v in vs):
-        raise InputError(f"write_tiff '{path}': voxel sizes must be positive, got {voxel_size_um!r}")
-    vs = vs[-a.ndim:]
+
+def _check_geometry(path, a, voxel_size_um, depths_um):
+    """(dz, dy, dx) or (dy, dx) floats or None, depths list or None; InputError on bad values."""
+    vs = None
+    if voxel_size_um is not None:
+        try:
+            vs = [float(v) for v in voxel_size_um]
+        except (TypeError, ValueError):
+            raise InputError(f"write_tiff '{path}': voxel_size_um must be numbers (dz, dy, dx), "
+                             f"got {voxel_size_um!r}") from None
+        if len(vs) not in (2, 3) or (a.ndim == 3 and len(vs) != 3):
+            raise InputError(f"write_tiff '{path}': voxel_size_um must be (dz, dy, dx) for a {a.ndim}D array, "
+                             f"got {voxel_size_um!r}")
+        if any(not np.isfinite(v) or v <= 0 for v in vs):
+            raise InputError(f"write_tiff '{path}': voxel sizes must be positive and finite, got {voxel_size_um!r}")
+        vs = vs[-a.ndim:]
+    depths = None
     if depths_um is not None:
-        depths = [float(d) for d in np.atleast_1d(depths_um)]
+        depths = [float(d) for d in np.atleast_1d(np.asarray(depths_um, dtype=float))]
         nz = a.shape[0] if a.ndim == 3 else 1
         if len(depths) != nz:
             raise InputError(f"write_tiff '{path}': {len(depths)} depths for {nz} planes")
-    else:
-        depths = None
-    record = {_KEY: __import__("cm2cl").__version__, "shape": list(a.shape), "dtype": str(a.dtype),
-              "voxel_size_um": vs, "unit": "um", "depths_um": depths, "extra": jsonable(extra or {})}
-    text = json.dumps(record)
+        if not all(np.isfinite(depths)):
+            raise InputError(f"write_tiff '{path}': depths_um must be finite")
+    return vs, depths
+
+
+def write_tiff(path, array, voxel_size_um=None, depths_um=None, extra=None) -> Path:
+    """Write a 2D (y, x) or 3D (z, y, x) array as OME-TIFF with its physical geometry.
+
+    Parameters
+    ----------
+    path : output file (``*.ome.tif`` lets Fiji pick Bio-Formats, which reads the z scale).
+    array : numpy array; written with its own dtype (never converted).
+    voxel_size_um : (dz, dy, dx) in um (for a 2D image (dy, dx) or (dz, dy, dx), dz unused), or None
+        when the physical scale is not known: the file then says pixels.
+    depths_um : optional depth of each z plane in um (OME ``Plane PositionZ``).
+    extra : optional JSON-serialisable dict stored in the record (what the data is).
+    """
     import tifffile
 
-    path = Path(path)
-    dy, dx = vs[-2], vs[-1]
-    if a.dtype in _IMAGEJ_DTYPES:
-        md = {"unit": "um", "axes": "ZYX" if a.ndim == 3 else "YX", "Info": text}
+    a = np.asarray(array)
+    if a.ndim not in (2, 3) or a.size == 0:
+        raise InputError(f"write_tiff '{path}': expected a non-empty 2D or 3D array, got shape {a.shape}")
+    vs, depths = _check_geometry(path, a, voxel_size_um, depths_um)
+    record = {_KEY: __import__("cm2cl").__version__, "shape": list(a.shape), "dtype": str(a.dtype),
+              "voxel_size_um": vs, "unit": "um" if vs else "pixel", "depths_um": depths,
+              "extra": jsonable(extra or {})}
+    md = {"axes": "ZYX" if a.ndim == 3 else "YX", "Description": json.dumps(record)}
+    if vs is not None:
+        md.update(PhysicalSizeX=vs[-1], PhysicalSizeXUnit="µm", PhysicalSizeY=vs[-2], PhysicalSizeYUnit="µm")
         if a.ndim == 3:
-            md["spacing"] = vs[0]
-            if depths is not None:
-                md["Labels"] = [f"z={d:.6g} um" for d in depths]
-        tifffile.imwrite(path, a, imagej=True, resolution=(1.0 / dx, 1.0 / dy), metadata=md)
+            md.update(PhysicalSizeZ=vs[0], PhysicalSizeZUnit="µm")
+        resolution, unit = (1e4 / vs[-1], 1e4 / vs[-2]), "CENTIMETER"
     else:
-        tifffile.imwrite(path, a, description=text, metadata=None, photometric="minisblack",
-                         resolution=(1e4 / dx, 1e4 / dy), resolutionunit="CENTIMETER")
+        resolution, unit = (1.0, 1.0), "NONE"
+    if depths is not None:
+        md["Plane"] = {"PositionZ": depths, "PositionZUnit": ["µm"] * len(depths)}
+    path = Path(path)
+    tifffile.imwrite(path, a, ome=True, metadata=md, photometric="minisblack", resolution=resolution,
+                     resolutionunit=unit)
     return path
 
 
-def read_tiff(path):
-    """Read a TIFF written by :func:`write_tiff` (or any TIFF).
+def _rational(value) -> float:
+    num, den = value if isinstance(value, tuple) else (value, 1)
+    return float(num) / float(den) if den else 0.0
 
-    Returns (array, meta) where meta holds ``voxel_size_um`` ((dz, dy, dx) for 3D, (dy, dx) for 2D;
-    from the cm2cl record, else from ImageJ spacing / resolution tags, else 1.0), ``depths_um``
-    (list or None), ``unit`` and ``extra`` (dict).
+
+def _ome_geometry(xml_text: str, ndim: int):
+    """(voxel sizes or None, depths or None, cm2cl record or None) from OME-XML."""
+    root = ET.fromstring(xml_text)
+    ns = {"ome": root.tag[1:].split("}")[0]} if root.tag.startswith("{") else {}
+    q = (lambda t: f"ome:{t}") if ns else (lambda t: t)
+    image = root.find(q("Image"), ns)
+    if image is None:
+        return None, None, None
+    pixels = image.find(q("Pixels"), ns)
+    record = None
+    desc = image.find(q("Description"), ns)
+    if desc is not None and desc.text:
+        try:
+            cand = json.loads(desc.text)
+        except ValueError:
+            cand = None
+        if isinstance(cand, dict) and _KEY in cand:
+            record = cand
+    if pixels is None:
+        return None, None, record
+
+    def length(attr):
+        v = pixels.get(attr)
+        if v is None:
+            return None
+        scale = _UM_PER.get(pixels.get(attr + "Unit", "µm"))
+        return float(v) * scale if scale else None
+
+    depths = None
+    planes = pixels.findall(q("Plane"), ns)
+    if planes and all(p.get("PositionZ") is not None for p in planes):
+        by_z = {}
+        for p in planes:
+            scale = _UM_PER.get(p.get("PositionZUnit", "reference frame"))
+            if scale is None:
+                by_z = {}
+                break
+            by_z.setdefault(int(p.get("TheZ", 0)), float(p.get("PositionZ")) * scale)
+        if by_z and sorted(by_z) == list(range(len(by_z))):
+            depths = [by_z[z] for z in range(len(by_z))]
+    dx, dy, dz = length("PhysicalSizeX"), length("PhysicalSizeY"), length("PhysicalSizeZ")
+    if dz is None and depths is not None and len(depths) > 1 and np.allclose(np.diff(depths), depths[1] - depths[0]):
+        dz = abs(depths[1] - depths[0])
+    vs = None
+    if dx is not None and dy is not None:
+        if ndim == 2:
+            vs = (dy, dx)
+        elif dz is not None:
+            vs = (dz, dy, dx)
+    return vs, depths, record
+
+
+def read_tiff(path):
+    """Read a TIFF written by :func:`write_tiff`, an ImageJ hyperstack, or any other TIFF.
+
+    Returns (array, meta): ``voxel_size_um`` ((dz, dy, dx) for 3D, (dy, dx) for 2D; None when the file
+    carries no physical scale), ``unit`` ('um', or 'pixel' when the scale is not known),
+    ``depths_um`` (list or None) and ``extra`` (dict; cm2cl's record, else empty).
+
+    The scale comes from OME ``PhysicalSize*`` and ``Plane PositionZ``, else ImageJ's unit,
+    resolution and spacing, else the TIFF resolution tags in cm or inch; a TIFF without any of
+    these (or with ``ResolutionUnit=NONE``) is in pixels.
     """
     import tifffile
 
@@ -87,15 +194,24 @@ def read_tiff(path):
     try:
         with tifffile.TiffFile(path) as tf:
             arr = tf.asarray()
+            ome = tf.ome_metadata if tf.is_ome else None
             ij = tf.imagej_metadata or {}
             page = tf.pages[0]
             desc = page.description or ""
-            res = page.resolution if hasattr(page, "resolution") else None
-            res_unit = page.tags["ResolutionUnit"].value if "ResolutionUnit" in page.tags else None
+            tags = page.tags
+            res = tuple(_rational(tags[k].value) for k in ("XResolution", "YResolution") if k in tags)
+            res_unit = int(tags["ResolutionUnit"].value) if "ResolutionUnit" in tags else 2  # TIFF default: inch
     except (tifffile.TiffFileError, ValueError, OSError) as exc:
         raise InputError(f"'{path}': not a readable TIFF file ({exc})") from exc
+    if ome:
+        try:
+            vs, depths, record = _ome_geometry(ome, arr.ndim)
+        except ET.ParseError as exc:
+            raise InputError(f"'{path}': its OME-XML is not readable ({exc})") from exc
+        extra = (record or {}).get("extra") or {}
+        return arr, {"voxel_size_um": vs, "unit": "um" if vs else "pixel", "depths_um": depths, "extra": extra}
     record = None
-    for text in (ij.get("Info"), desc):
+    for text in (ij.get("Info"), desc):           # ImageJ hyperstacks written by cm2cl < 0.2
         if text:
             try:
                 cand = json.loads(text)
@@ -105,17 +221,21 @@ def read_tiff(path):
                 record = cand
                 break
     if record is not None:
-        vs = tuple(float(v) for v in record.get("voxel_size_um", ()))
-        meta = {"voxel_size_um": vs, "depths_um": record.get("depths_um"),
-                "unit": record.get("unit", "um"), "extra": record.get("extra") or {}}
-    else:
-        dy = dx = 1.0
-        if res and res[0] > 0 and res[1] > 0:
-            scale = 1.0
-            if not ij:
-                scale = {3: 1e4, 2: 2.54e4}.get(int(res_unit) if res_unit is not None else 0, 1.0)
+        vs = record.get("voxel_size_um")
+        vs = tuple(float(v) for v in vs) if vs else None
+        unit = record.get("unit", "um") if vs else "pixel"
+        return arr, {"voxel_size_um": vs, "depths_um": record.get("depths_um"), "unit": unit,
+                     "extra": record.get("extra") or {}}
+    vs = None
+    if len(res) == 2 and res[0] > 0 and res[1] > 0:
+        if ij:
+            scale = _UM_PER.get(str(ij.get("unit", "")).strip())
+        else:
+            scale = _UM_PER_RESUNIT.get(res_unit)
+        if scale:
             dx, dy = scale / res[0], scale / res[1]
-        dz = float(ij.get("spacing", 1.0))
-        vs = (dz, dy, dx) if arr.ndim >= 3 else (dy, dx)
-        meta = {"voxel_size_um": vs, "depths_um": None, "unit": ij.get("unit", "um"), "extra": {}}
-    return arr, meta
+            if arr.ndim == 2:
+                vs = (dy, dx)
+            elif ij:                              # ImageJ omits spacing when it is 1 (its default)
+                vs = (float(ij.get("spacing", 1.0)) * scale, dy, dx)
+    return arr, {"voxel_size_um": vs, "unit": "um" if vs else "pixel", "depths_um": None, "extra": {}}

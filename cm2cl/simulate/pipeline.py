@@ -31,6 +31,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..io.staging import StagedOutput, check_output_dir, jsonable
+from ..io.tiff import OBJECT_SPACE
 from . import effects as _effects
 from .objects import Beads, generate
 from ..solver.memory import host_available_bytes
@@ -38,9 +39,13 @@ from .render import (RenderGrid, Sample, estimate_bytes, padded_shape_for, raste
                      render_emitters, render_grid, render_psf_stack, render_shift_invariant)
 from .scene import Scene, load_scene
 
-__all__ = ["simulate", "simulate_scene", "write_simulation", "SimulationResult"]
+__all__ = ["simulate", "simulate_scene", "write_simulation", "SimulationResult", "EMITTER_COLUMNS"]
 
 _STAGE_KEYS = {"objects": 1, "object": 2, "optics": 3, "sensor": 4, "random_seed": 5}
+
+#: emitters.csv columns: napari's CSV points reader takes the ``axis-*`` columns as point coordinates
+#: (data/voxel units of ground_truth.ome.tif: plane, row, column) and the others as point properties
+EMITTER_COLUMNS = ("index", "axis-0", "axis-1", "axis-2", "x_um", "y_um", "z_um", "brightness", "diameter_um")
 
 
 @dataclass
@@ -206,6 +211,10 @@ def simulate_scene(scene, seed: int | None = None, device=None) -> SimulationRes
         "objects": [{"type": s["type"], "count": len(o), "kind": o.kind} for s, o in zip(scene.objects, objects)],
         "measurement": {"units": units, "dtype": str(measurement.dtype), "shape": list(measurement.shape),
                         "pixel_size_um": optics.pixel_size_um},
+        "psf": {"depths_um": depths.tolist(), "voxel_size_um": list(voxel), "voxel_space": OBJECT_SPACE,
+                "sensor_pixel_um": optics.pixel_size_um,
+                "note": "PSF images lie on the sensor grid; their voxel size is that of the object-space "
+                        "reconstruction grid, which cm2cl reconstruct gives the volume"},
         "timings_s": {**timings, "total_s": time.perf_counter() - t_start},
     }
     return SimulationResult(measurement, expected, psf.astype(np.float32), gt.astype(np.float32), depths,
@@ -226,38 +235,44 @@ def _truth_table(beads, grid: RenderGrid, depths, dz) -> dict:
 
 
 def _write_outputs(result: SimulationResult, scene: Scene, tmp: Path) -> dict:
+    """measurement, PSF and ground truth as OME-TIFF; the bead table as CSV. The PSF stack carries
+    the object-space voxel size of the reconstruction grid (what a volume reconstructed with it
+    measures) and the depths; the measurement carries the sensor pixel it was recorded with."""
     from ..io.tiff import write_tiff
 
     opt = scene.optics
     p = opt.pixel_size_um
     files = {}
-    write_tiff(tmp / "measurement.tif", result.measurement, voxel_size_um=(p, p),
+    write_tiff(tmp / "measurement.ome.tif", result.measurement, voxel_size_um=(p, p),
                extra={"kind": "measurement", "units": result.record["measurement"]["units"],
-                      "object_pixel_um": result.voxel_size_um[1], "scene": scene.name})
-    files["measurement"] = "measurement.tif"
-    write_tiff(tmp / "psf.tif", result.psf, voxel_size_um=(result.voxel_size_um[0], p, p),
-               depths_um=result.depths_um,
+                      "voxel_space": "sensor", "object_pixel_um": result.voxel_size_um[1], "scene": scene.name})
+    files["measurement"] = "measurement.ome.tif"
+    write_tiff(tmp / "psf.ome.tif", result.psf, voxel_size_um=result.voxel_size_um, depths_um=result.depths_um,
                extra={"kind": "psf", "normalisation": "each plane: the untruncated on-axis array sums to 1",
+                      "voxel_space": OBJECT_SPACE, "sensor_pixel_um": p,
                       "axis_pixel": list(opt.center_px), "scene": scene.name})
-    files["psf"] = "psf.tif"
-    write_tiff(tmp / "ground_truth.tif", result.ground_truth, voxel_size_um=result.voxel_size_um,
+    files["psf"] = "psf.ome.tif"
+    write_tiff(tmp / "ground_truth.ome.tif", result.ground_truth, voxel_size_um=result.voxel_size_um,
                depths_um=result.depths_um,
-               extra={"kind": "ground_truth", "units": "photo-electrons per voxel",
+               extra={"kind": "ground_truth", "units": "photo-electrons per voxel", "voxel_space": OBJECT_SPACE,
                       "frame": result.record["volume"]["frame"], "scene": scene.name})
-    files["ground_truth"] = "ground_truth.tif"
+    files["ground_truth"] = "ground_truth.ome.tif"
     if result.emitters is not None:
-        cols = ["x_um", "y_um", "z_um", "brightness", "diameter_um", "plane", "row", "col"]
-        table = np.column_stack([result.emitters[c] for c in cols])
-        np.savetxt(tmp / "emitters.csv", table, delimiter=",", header=",".join(cols), comments="",
-                   fmt="%.6g")
+        e = result.emitters
+        table = np.column_stack([np.arange(len(e["plane"]))] +
+                                [e[c] for c in ("plane", "row", "col", "x_um", "y_um", "z_um", "brightness",
+                                                "diameter_um")])
+        np.savetxt(tmp / "emitters.csv", table, delimiter=",", header=",".join(EMITTER_COLUMNS), comments="",
+                   fmt=["%d"] + ["%.6g"] * (len(EMITTER_COLUMNS) - 1))
         files["emitters"] = "emitters.csv"
     return files
 
 
 def simulate(scene, outdir, seed: int | None = None, device=None) -> dict:
-    """Simulate a scene and write ``measurement.tif``, ``psf.tif``, ``ground_truth.tif`` (TIFF with
-    voxel sizes and depths), ``emitters.csv`` (bead scenes) and ``simulation.json`` (the record:
-    scene with defaults, seed, effects applied, render path, timings) into ``outdir``.
+    """Simulate a scene and write ``measurement.ome.tif``, ``psf.ome.tif``, ``ground_truth.ome.tif``
+    (OME-TIFF with voxel sizes and depths), ``emitters.csv`` (bead scenes: voxel position as napari's
+    ``axis-0..2`` columns, object position in um) and ``simulation.json`` (the record: scene with
+    defaults, seed, effects applied, render path, timings) into ``outdir``.
 
     Files are written into a temporary directory beside ``outdir`` and moved in at the end, the
     JSON record last, so an interrupted run never leaves output that looks complete.
