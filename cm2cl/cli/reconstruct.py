@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ..solver.params import ADMMParams
+from ..solver.params import PENALTY_POLICIES, ADMMParams
 
 _DEFAULTS = ADMMParams()
 
@@ -29,8 +29,12 @@ def register(sub):
     r.add_argument("-o", "--output", required=True,
                    help="output OME-TIFF of the volume (name it *.ome.tif so that Fiji opens it with Bio-Formats)")
     g = r.add_argument_group("problem")
-    g.add_argument("--l1", type=float, default=_DEFAULTS.l1, help="l1 weight (normalised problem)")
-    g.add_argument("--tv", type=float, default=_DEFAULTS.tv, help="3D TV weight (normalised problem)")
+    g.add_argument("--l1", type=float, default=None,
+                   help="l1 weight on the normalised problem (default: %g x the measurement's estimated noise "
+                        "level, reported in the log)" % _DEFAULTS.l1_noise_ratio)
+    g.add_argument("--tv", type=float, default=None,
+                   help="3D TV weight on the normalised problem, 0 disables TV (default: %g x the noise level)"
+                        % _DEFAULTS.tv_noise_ratio)
     g.add_argument("--tv-axial-weight", type=float, default=_DEFAULTS.tv_axial_weight,
                    help="weight of axial differences in TV (non-cubic voxels: e.g. dx/dz)")
     g.add_argument("--anisotropic", action="store_true", help="anisotropic TV (default isotropic)")
@@ -38,9 +42,15 @@ def register(sub):
     g = r.add_argument_group("solver")
     g.add_argument("--max-iter", type=int, default=_DEFAULTS.max_iter)
     g.add_argument("--tol", type=float, default=_DEFAULTS.tol,
-                   help="stop when the relative change of x stays below this for --patience iterations")
-    g.add_argument("--patience", type=int, default=_DEFAULTS.patience)
-    g.add_argument("--no-balance", action="store_true", help="keep the penalties fixed")
+                   help="converged when every split's relative primal and dual residuals are below this "
+                        "(Boyd et al. 2011, sec. 3.3), with --tol-change and --patience (default %(default)g; 0 runs to --max-iter)")
+    g.add_argument("--tol-change", type=float, default=_DEFAULTS.tol_change,
+                   help="the relative change of x must also be below this (default %(default)g)")
+    g.add_argument("--patience", type=int, default=_DEFAULTS.patience,
+                   help="consecutive iterations the stopping test must hold (default %(default)d)")
+    g.add_argument("--penalty", choices=PENALTY_POLICIES, default=_DEFAULTS.penalty,
+                   help="penalty policy: adaptive (from the problem's scale, rebalanced on large imbalances), "
+                        "balance (the CM2 authors' x1.1 steps), fixed (default %(default)s)")
     g.add_argument("--dtype", choices=["float32", "float64"], default="float32")
     g.add_argument("--backend", default="auto", help="FFT backend: auto, cl, vkfft, reikna")
     g.add_argument("--device", default=None, help="device index or name fragment (see cm2cl devices)")
@@ -147,12 +157,10 @@ def command(args) -> int:
     dt = np.dtype(args.dtype)
     params = dict(l1=args.l1, tv=args.tv, tv_axial_weight=args.tv_axial_weight,
                   tv_isotropic=not args.anisotropic, tv_iters=args.tv_iters, max_iter=args.max_iter,
-                  tol=args.tol, patience=args.patience)
-    if args.no_balance:
-        params["balance_factor"] = 0.0
+                  tol=args.tol, tol_change=args.tol_change, patience=args.patience, penalty=args.penalty)
     progress = Progress(args.max_iter, args.quiet)
     try:
-        rec = reconstruct(y.astype(dt), h.astype(dt), dtype=dt, backend=args.backend, device=args.device,
+        rec = reconstruct(y, h, dtype=dt, backend=args.backend, device=args.device,
                           callback=progress, voxel_size_um=vs, depths_um=depths, **params)
     finally:
         progress.close()
@@ -172,7 +180,12 @@ def command(args) -> int:
         scale = "voxel {:g} x {:g} x {:g} um (z, y, x; {})".format(*rec.voxel_size_um, how)
     else:
         scale = how
-    print(f"{out}: {vol.shape} {vol.dtype} volume, {scale}; {rec.iterations} iterations ({rec.info['stop']}), "
-          f"objective {last['objective']:.4e}, {last['seconds']:.1f} s on {rec.info['device']}; "
+    info = rec.info
+    how_stop = ("converged" if info["converged"] else
+                f"NOT converged: stopped at --max-iter, relative residuals {last['primal_rel']:.1e} / "
+                f"{last['dual_rel']:.1e} against --tol {args.tol:g}")
+    print(f"{out}: {vol.shape} {vol.dtype} volume, {scale}; {rec.iterations} iterations, {how_stop}; "
+          f"l1 {info['l1']:.3g}, tv {info['tv']:.3g} (noise level {info['noise_sigma']:.3g} of max y); "
+          f"objective {last['objective']:.4e}, {last['seconds']:.1f} s on {info['device']}; "
           f"log: {stem}.log.csv, {stem}.json")
     return 0

@@ -227,7 +227,7 @@ class ADMMSolver:
                           xi2=s[XI2], w2=s[W2], rho2=s[RHO2], u2=s[U2], eta2=s[ETA2]):
                 break
         x = self.x.get()
-        vol = np.maximum(x, 0) * (self.psf_scale / y_scale)
+        vol = np.maximum(x, 0) * self.dtype.type(self.psf_scale / y_scale)  # stays in the solve's dtype
         return Reconstruction(
             volume_padded=vol, crop=m.crop, log=ctl.log,
             scaling={"psf_scale": float(self.psf_scale), "y_scale": float(y_scale)},
