@@ -19,8 +19,10 @@ from ..errors import InputError
 __all__ = ["register", "command", "demo"]
 
 SCENE = "demo_beads"
-#: reconstruction settings for the demo scene (normalised problem, see cm2cl.params.ADMMParams)
-RECON = {"l1": 1e-2, "tv": 1e-3, "max_iter": 200}
+
+#: the demo runs the solver's defaults (weights relative to the measurement's noise level, penalties from
+#: the problem's scale, the convergence rule) with this iteration cap
+RECON = {"max_iter": 200}
 #: detection threshold (fraction of the brightest voxel) and matching tolerances (voxels / planes)
 DETECT_THRESHOLD = 0.25
 MATCH_LATERAL_VOXELS = 3.0
@@ -79,14 +81,16 @@ def demo(outdir="cm2cl-demo", *, device=None, seed=None, max_iter: int = RECON["
         f"(seed {sim.record['seed']}, {sim.record['render']['path'].replace('_', '-')} model)")
 
     params = {**RECON, "max_iter": int(max_iter)}
-    say(f"  reconstructing (ADMM, l1 {params['l1']:g}, TV {params['tv']:g}, up to {params['max_iter']} iterations) ...",
-        flush=True)
+    say(f"  reconstructing (ADMM at the defaults, up to {params['max_iter']} iterations) ...", flush=True)
     t = time.perf_counter()
-    rec = reconstruct(sim.measurement.astype(np.float32), sim.psf, device=device,
+    rec = reconstruct(sim.measurement, sim.psf, device=device,
                       voxel_size_um=sim.voxel_size_um, depths_um=sim.depths_um, **params)
     t_rec = time.perf_counter() - t
     dev = rec.info.get("device", "?")
-    say(f"  reconstructed on {dev} in {t_rec:.1f} s ({rec.iterations} iterations, stop: {rec.info.get('stop', '?')})")
+    conv = ("converged: relative residuals and change below "
+            f"{rec.info['tol']:g}" if rec.info["converged"] else "NOT converged: stopped at the iteration cap")
+    say(f"  reconstructed on {dev} in {t_rec:.1f} s: {rec.iterations} iterations, {conv}; l1 {rec.info['l1']:.3g}, "
+        f"TV {rec.info['tv']:.3g} (noise level {rec.info['noise_sigma']:.3g} of the maximum)")
 
     vol = np.asarray(rec.volume)
     dz, dxy = sim.voxel_size_um[0], sim.voxel_size_um[1]
@@ -118,7 +122,9 @@ def demo(outdir="cm2cl-demo", *, device=None, seed=None, max_iter: int = RECON["
         "axial_error_um": {"mean": float(ax.mean()) if ax.size else None,
                            "rms": m["axial_rms_um"], "max_abs": float(np.abs(ax).max()) if ax.size else None},
         "voxel_size_um": list(sim.voxel_size_um), "depths_um": sim.depths_um.tolist(),
-        "reconstruction": {"params": params, "iterations": rec.iterations, "stop": rec.info.get("stop"),
+        "reconstruction": {"params": params, "iterations": rec.iterations, "stop": rec.info["stop"],
+                           "converged": rec.info["converged"], "l1": rec.info["l1"], "tv": rec.info["tv"],
+                           "noise_sigma": rec.info["noise_sigma"],
                            "scaling": rec.scaling},
         "matching": {"threshold": DETECT_THRESHOLD, "lateral_tolerance_um": MATCH_LATERAL_VOXELS * dxy,
                      "axial_tolerance_um": MATCH_AXIAL_PLANES * dz},

@@ -16,6 +16,10 @@ from .params import ADMMParams
 #: the noise estimate is floored at this fraction of max(y): below it (e.g. noise-free simulations)
 #: the weights would vanish and the problem would lose its regularisation
 NOISE_FLOOR = 1e-4
+#: absolute floor of the scales of the relative residuals and of the relative change, as a fraction
+#: of ||y|| on the normalised problem (any x that fits the data has ||x|| >= ||y|| since ||H|| = 1):
+#: an iterate that vanishes (weights far above the data) is judged against the data's scale, not 0
+ABS_FRACTION = 1e-3
 
 
 def noise_sigma(y) -> float:
@@ -37,11 +41,15 @@ class ProblemScale:
     noise_sigma: float
     #: mean over frequencies of sum_i |H_i(k)|^2 = sum_i ||h_i||^2 (Parseval); its maximum is 1
     spectral_mean: float
+    #: ||y|| of the normalised measurement
+    y_norm: float = 1.0
 
     @classmethod
     def of(cls, y_normalised, spectral_mean: float) -> "ProblemScale":
         """From the normalised measurement (My, Mx) and sum_i ||h_i||^2 of the normalised PSF stack."""
-        return cls(noise_sigma=max(noise_sigma(y_normalised), NOISE_FLOOR), spectral_mean=float(spectral_mean))
+        y = np.asarray(y_normalised, np.float64)
+        return cls(noise_sigma=max(noise_sigma(y), NOISE_FLOOR), spectral_mean=float(spectral_mean),
+                   y_norm=float(np.sqrt(np.sum(y * y))))
 
     def weights(self, p: ADMMParams) -> tuple[float, float]:
         """(l1, tv): the given weights, or the defaults relative to the noise level."""
@@ -126,15 +134,19 @@ class Control:
         r_u, s_u = sq(ru2), self.mu_u * sq(du2)
         r_w, s_w = sq(rw2), self.mu_w * sq(dw2)
         nx = sq(x2)
+        floor = ABS_FRACTION * self.scale.y_norm
         # dual residuals are in units of mu * (split variable); their scale is the dual variable or,
         # while the duals are still building up from 0, mu times the split variable
         rel = {
-            "v": (_ratio(r_v, max(sq(hx2), sq(v2))), _ratio(s_v, max(sq(xi2), self.mu_v * sq(v2)))),
-            "w": (_ratio(r_w, max(nx, sq(w2))), _ratio(s_w, max(sq(rho2), self.mu_w * sq(w2)))),
-            "u": ((_ratio(r_u, max(nx, sq(u2))), _ratio(s_u, max(sq(eta2), self.mu_u * sq(u2))))
+            "v": (_ratio(r_v, max(sq(hx2), sq(v2), floor)),
+                  _ratio(s_v, max(sq(xi2), self.mu_v * max(sq(v2), floor)))),
+            "w": (_ratio(r_w, max(nx, sq(w2), floor)),
+                  _ratio(s_w, max(sq(rho2), self.mu_w * max(sq(w2), floor)))),
+            "u": ((_ratio(r_u, max(nx, sq(u2), floor)),
+                   _ratio(s_u, max(sq(eta2), self.mu_u * max(sq(u2), floor))))
                   if self.tv_active else (0.0, 0.0)),
         }
-        rel_change = _ratio(sq(dx2), nx)
+        rel_change = _ratio(sq(dx2), max(nx, floor))
         primal_rel = max(r for r, _ in rel.values())
         dual_rel = max(s for _, s in rel.values())
         data = 0.5 * data2
