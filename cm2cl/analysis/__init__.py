@@ -2,7 +2,7 @@
 (:mod:`.metrics`); emitter detection and matching against ground truth (:mod:`.emitters`); MIP
 figures (:mod:`.figures`)."""
 
-from .emitters import find_emitters, match_emitters  # noqa: F401
+from .emitters import find_emitters, match_emitters, score_beads  # noqa: F401
 from .figures import content_region, mip_png  # noqa: F401
 from .metrics import (axial_pcc, fwhm, local_sbr, pcc, register_shift, signal_mask,  # noqa: F401
                       width_at_level)

@@ -9,7 +9,13 @@ from scipy import ndimage
 
 from ..errors import InputError
 
-__all__ = ["find_emitters", "match_emitters"]
+__all__ = ["find_emitters", "match_emitters", "score_beads", "DETECT_THRESHOLD", "MATCH_LATERAL_VOXELS", "MATCH_AXIAL_PLANES"]
+
+#: detection threshold (fraction of the brightest voxel) and matching tolerances (voxels / planes)
+#: used to score a reconstruction of a simulated bead scene
+DETECT_THRESHOLD = 0.25
+MATCH_LATERAL_VOXELS = 3.0
+MATCH_AXIAL_PLANES = 1.5
 
 
 def find_emitters(volume, threshold: float = 0.2, min_distance_vox=(1, 2, 2),
@@ -106,3 +112,22 @@ def match_emitters(detected_um, true_um, max_lateral_um: float, max_axial_um: fl
         e = out[key]
         out[key.replace("_error_um", "_rms_um")] = float(np.sqrt(np.mean(e ** 2))) if e.size else float("nan")
     return out
+
+
+def score_beads(volume, sim) -> dict:
+    """Score a reconstruction (nz, My, Mx) of a simulated bead scene (a SimulationResult): local maxima
+    above DETECT_THRESHOLD of the peak, mapped to object space through the scene's optics, matched one
+    to one with the true beads within MATCH_LATERAL_VOXELS voxels and MATCH_AXIAL_PLANES planes.
+    Returns match_emitters' dict plus ``found_um`` and ``true_um`` ((n, 3) x, y, z) and the tolerances."""
+    dz, dxy = sim.voxel_size_um[0], sim.voxel_size_um[1]
+    det = find_emitters(np.asarray(volume), threshold=DETECT_THRESHOLD, min_distance_vox=(1, 3, 3))
+    idx = det["index"]
+    z = np.interp(idx[:, 0], np.arange(len(sim.depths_um)), sim.depths_um)
+    x_mm, y_mm = sim.scene.optics.sensor_to_object_mm(idx[:, 1], idx[:, 2], z)
+    found = np.column_stack([1000.0 * x_mm, 1000.0 * y_mm, z])
+    e = sim.emitters
+    true = np.column_stack([e["x_um"], e["y_um"], e["z_um"]])
+    m = match_emitters(found[:, [2, 1, 0]], true[:, [2, 1, 0]], MATCH_LATERAL_VOXELS * dxy, MATCH_AXIAL_PLANES * dz)
+    m.update(found_um=found, true_um=true, lateral_tolerance_um=MATCH_LATERAL_VOXELS * dxy,
+             axial_tolerance_um=MATCH_AXIAL_PLANES * dz)
+    return m

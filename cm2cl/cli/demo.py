@@ -23,10 +23,6 @@ SCENE = "demo_beads"
 #: the demo runs the solver's defaults (weights relative to the measurement's noise level, penalties from
 #: the problem's scale, the convergence rule) with this iteration cap
 RECON = {"max_iter": 200}
-#: detection threshold (fraction of the brightest voxel) and matching tolerances (voxels / planes)
-DETECT_THRESHOLD = 0.25
-MATCH_LATERAL_VOXELS = 3.0
-MATCH_AXIAL_PLANES = 1.5
 
 
 def register(subparsers):
@@ -48,13 +44,6 @@ def command(args) -> int:
     return 0
 
 
-def _object_positions(index, optics, depths_um):
-    """(n, 3) object (x, y, z) in um of fractional ground-truth voxel indices (plane, row, col)."""
-    z = np.interp(index[:, 0], np.arange(len(depths_um)), depths_um)
-    x_mm, y_mm = optics.sensor_to_object_mm(index[:, 1], index[:, 2], z)
-    return np.column_stack([1000.0 * x_mm, 1000.0 * y_mm, z])
-
-
 def demo(outdir="cm2cl-demo", *, device=None, seed=None, max_iter: int = RECON["max_iter"],
          verbose: bool = True) -> dict:
     """Run the demo; returns its summary (also written to OUTDIR/demo.json)."""
@@ -71,7 +60,6 @@ def demo(outdir="cm2cl-demo", *, device=None, seed=None, max_iter: int = RECON["
     t0 = time.perf_counter()
 
     scene = load_scene(SCENE)
-    optics = scene.optics
     say(f"cm2cl demo: simulating '{scene.name}': {scene.description}")
     t = time.perf_counter()
     sim = simulate_scene(scene, seed, device)
@@ -94,13 +82,8 @@ def demo(outdir="cm2cl-demo", *, device=None, seed=None, max_iter: int = RECON["
 
     vol = np.asarray(rec.volume)
     dz, dxy = sim.voxel_size_um[0], sim.voxel_size_um[1]
-    det = analysis.find_emitters(vol, threshold=DETECT_THRESHOLD, min_distance_vox=(1, 3, 3))
-    found = _object_positions(det["index"], optics, sim.depths_um)
-    e = sim.emitters
-    true = np.column_stack([e["x_um"], e["y_um"], e["z_um"]])
-    # match in (z, y, x) order as analysis expects
-    m = analysis.match_emitters(found[:, [2, 1, 0]], true[:, [2, 1, 0]],
-                                MATCH_LATERAL_VOXELS * dxy, MATCH_AXIAL_PLANES * dz)
+    m = analysis.score_beads(vol, sim)
+    found, true = m["found_um"], m["true_um"]
     rows = []
     for (i_det, i_true), lat, ax in zip(m["pairs"], m["lateral_error_um"], m["axial_error_um"]):
         rows.append({"true_um": true[i_true].round(1).tolist(), "found_um": found[i_det].round(1).tolist(),
@@ -126,8 +109,8 @@ def demo(outdir="cm2cl-demo", *, device=None, seed=None, max_iter: int = RECON["
                            "converged": rec.info["converged"], "l1": rec.info["l1"], "tv": rec.info["tv"],
                            "noise_sigma": rec.info["noise_sigma"],
                            "scaling": rec.scaling},
-        "matching": {"threshold": DETECT_THRESHOLD, "lateral_tolerance_um": MATCH_LATERAL_VOXELS * dxy,
-                     "axial_tolerance_um": MATCH_AXIAL_PLANES * dz},
+        "matching": {"threshold": analysis.emitters.DETECT_THRESHOLD,
+                     "lateral_tolerance_um": m["lateral_tolerance_um"], "axial_tolerance_um": m["axial_tolerance_um"]},
         "pairs": rows,
         "seconds": {"simulation": t_sim, "reconstruction": t_rec},
     }

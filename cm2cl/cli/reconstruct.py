@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ..solver.params import PENALTY_POLICIES, ADMMParams
+from ..solver.params import PENALTY_POLICIES, PRESETS, ADMMParams
 
 _DEFAULTS = ADMMParams()
 
@@ -40,12 +40,16 @@ def register(sub):
     g.add_argument("--anisotropic", action="store_true", help="anisotropic TV (default isotropic)")
     g.add_argument("--tv-iters", type=int, default=_DEFAULTS.tv_iters, help="TV dual iterations per outer iteration")
     g = r.add_argument_group("solver")
-    g.add_argument("--max-iter", type=int, default=_DEFAULTS.max_iter)
-    g.add_argument("--tol", type=float, default=_DEFAULTS.tol,
+    g.add_argument("--preset", choices=list(PRESETS), default=None,
+                   help="accuracy against time, measured in docs/accuracy_vs_time.md: " + "; ".join(
+                       f"{k}: {', '.join(f'{n}={v:g}' for n, v in o.items()) or 'the defaults'}"
+                       for k, o in PRESETS.items()) + ". Explicit --max-iter/--tol/--tol-change win")
+    g.add_argument("--max-iter", type=int, default=None, help=f"iteration cap (default {_DEFAULTS.max_iter})")
+    g.add_argument("--tol", type=float, default=None,
                    help="converged when every split's relative primal and dual residuals are below this "
-                        "(Boyd et al. 2011, sec. 3.3), with --tol-change and --patience (default %(default)g; 0 runs to --max-iter)")
-    g.add_argument("--tol-change", type=float, default=_DEFAULTS.tol_change,
-                   help="the relative change of x must also be below this (default %(default)g)")
+                        "(Boyd et al. 2011, sec. 3.3), with --tol-change and --patience (default %g; 0 runs to --max-iter)" % _DEFAULTS.tol)
+    g.add_argument("--tol-change", type=float, default=None,
+                   help="the relative change of x must also be below this (default %g)" % _DEFAULTS.tol_change)
     g.add_argument("--patience", type=int, default=_DEFAULTS.patience,
                    help="consecutive iterations the stopping test must hold (default %(default)d)")
     g.add_argument("--penalty", choices=PENALTY_POLICIES, default=_DEFAULTS.penalty,
@@ -156,9 +160,12 @@ def command(args) -> int:
         raise InputError(f"psf '{args.psf}': {len(depths)} plane positions for {h.shape[0]} planes")
     dt = np.dtype(args.dtype)
     params = dict(l1=args.l1, tv=args.tv, tv_axial_weight=args.tv_axial_weight,
-                  tv_isotropic=not args.anisotropic, tv_iters=args.tv_iters, max_iter=args.max_iter,
-                  tol=args.tol, tol_change=args.tol_change, patience=args.patience, penalty=args.penalty)
-    progress = Progress(args.max_iter, args.quiet)
+                  tv_isotropic=not args.anisotropic, tv_iters=args.tv_iters, patience=args.patience,
+                  penalty=args.penalty)
+    given = {k: v for k, v in (("max_iter", args.max_iter), ("tol", args.tol), ("tol_change", args.tol_change))
+             if v is not None}
+    params.update({**PRESETS[args.preset or "balanced"], **given})
+    progress = Progress(params.get("max_iter", _DEFAULTS.max_iter), args.quiet)
     try:
         rec = reconstruct(y, h, dtype=dt, backend=args.backend, device=args.device,
                           callback=progress, voxel_size_um=vs, depths_um=depths, **params)
@@ -183,7 +190,7 @@ def command(args) -> int:
     info = rec.info
     how_stop = ("converged" if info["converged"] else
                 f"NOT converged: stopped at --max-iter, relative residuals {last['primal_rel']:.1e} / "
-                f"{last['dual_rel']:.1e} against --tol {args.tol:g}")
+                f"{last['dual_rel']:.1e} against tol {info['tol']:g}")
     print(f"{out}: {vol.shape} {vol.dtype} volume, {scale}; {rec.iterations} iterations, {how_stop}; "
           f"l1 {info['l1']:.3g}, tv {info['tv']:.3g} (noise level {info['noise_sigma']:.3g} of max y); "
           f"objective {last['objective']:.4e}, {last['seconds']:.1f} s on {info['device']}; "
