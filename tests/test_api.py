@@ -73,3 +73,33 @@ def test_string_weights_are_refused_before_any_work():
         cm2cl.reconstruct(np.ones((8, 8)), np.ones((1, 8, 8)), l1="1e-3")
     with pytest.raises(InputError, match=r"^tv_iters: must be <= 1000"):
         cm2cl.reconstruct(np.ones((8, 8)), np.ones((1, 8, 8)), tv_iters=100000)
+
+
+def test_library_prints_nothing_and_logs_to_the_cm2cl_logger(rt, capsys, caplog):
+    import logging
+
+    psf, _, y = bead_problem(5)
+    with caplog.at_level(logging.INFO, logger="cm2cl"):
+        rec = cm2cl.reconstruct(y, psf, max_iter=5, tol=0)
+    out = capsys.readouterr()
+    assert out.out == "" and out.err == ""
+    msgs = [r for r in caplog.records if r.name.startswith("cm2cl")]
+    assert any("5 iterations, stopped at max_iter" in r.getMessage() for r in msgs)
+    assert rec.iterations == 5
+
+
+def test_python_310_gets_a_toml_parser():
+    """tomllib is 3.11+: Python 3.10 (allowed by requires-python) needs tomli, imported only there."""
+    import ast
+    import re
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    py = (root / "pyproject.toml").read_text()
+    assert re.search(r'requires-python = ">=3\.10"', py)
+    assert re.search(r'"tomli>=[\d.]+; python_version < \'3\.11\'"', py)
+    tree = ast.parse((root / "cm2cl/simulate/scene.py").read_text())
+    top = [n for n in tree.body if isinstance(n, ast.Import) and any(a.name == "tomllib" for a in n.names)]
+    assert not top, "an unconditional `import tomllib` breaks Python 3.10"
+    guarded = [n for n in tree.body if isinstance(n, ast.If) and "version_info" in ast.unparse(n.test)]
+    assert guarded and "tomli" in ast.unparse(guarded[0])

@@ -11,6 +11,8 @@ The float64 numpy twin is :func:`cm2cl.reference.admm` (tests and tools only).
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 
 from .. import validate
@@ -31,6 +33,8 @@ from .memory import check_fits
  RV2, SV2, DATA2, HX2, V2, XI2,                # update_v
  RU2, SU2, U2, ETA2) = range(18)               # tv_finish
 NSLOTS = 18
+
+log = logging.getLogger(__name__)
 #: elements each work-item of a reduction handles (PoCL on 2 cores: 64 beat 16 and 256 by
 #: 1.1-1.6x; GPUs keep hundreds of work-groups at this size for a few million voxels)
 PER_ITEM = 64
@@ -226,6 +230,10 @@ class ADMMSolver:
                           dv2=s[SV2], ru2=s[RU2], du2=s[SU2], rw2=s[RW2], dw2=s[SW2], hx2=s[HX2], v2=s[V2],
                           xi2=s[XI2], w2=s[W2], rho2=s[RHO2], u2=s[U2], eta2=s[ETA2]):
                 break
+        last = ctl.log[-1]
+        log.info("ADMM on %s: %d iterations, %s (relative residuals %.2e / %.2e, change %.2e), %.2f s",
+                 rt.caps.name, len(ctl.log), "converged" if ctl.converged else "stopped at max_iter",
+                 last["primal_rel"], last["dual_rel"], last["rel_change"], last["seconds"])
         x = self.x.get()
         vol = np.maximum(x, 0) * self.dtype.type(self.psf_scale / y_scale)  # stays in the solve's dtype
         return Reconstruction(
