@@ -134,3 +134,17 @@ def test_real_3d_crop_default_run_converges_near_the_optimum(rt):
     psf, y = datasets.diffusercam_3d(4, planes=range(0, 44, 4))
     gap = _gap_to_long_run(psf, y, 300)
     assert -1e-4 < gap < 0.02
+
+
+@pytest.mark.parametrize("s_psf, s_y", [(1e20, 1.0), (1e-20, 1.0), (1.0, 1e-30), (1e15, 1e-12)])
+def test_float32_solves_any_finite_input_scale(rt, s_psf, s_y):
+    """PSF and measurement are normalised in float64 on the host before the device sees them, so a
+    float32 solve of a scaled problem gives the scaled answer (x scales as s_y / s_psf; kept within
+    float32's normal range here: a volume float32 cannot hold is issue 8's to refuse)."""
+    psf, _, y = bead_problem(7)
+    kw = dict(max_iter=40, tol=0, padded_shape=(64, 80), dtype=np.float32)
+    base = cm2cl.reconstruct(y, psf, **kw)
+    rec = cm2cl.reconstruct(y * s_y, psf * s_psf, **kw)
+    v = rec.volume * (s_psf / s_y)
+    assert np.all(np.isfinite(rec.volume))
+    assert np.linalg.norm(v - base.volume) <= 1e-5 * np.linalg.norm(base.volume)
