@@ -140,10 +140,10 @@ def test_real_diffusercam_data(rt):
     rec = reconstruct(y.astype(np.float32), psf[None].astype(np.float32), backend="auto", **kw)
     data = rec.log_array("data")
     y_energy = 0.5 * np.sum((y * rec.scaling["y_scale"]) ** 2)
-    # the data residual falls by more than 200x from the first iterate (x = 0: ||y||^2/2);
-    # seen: 17322 -> 24.4 (710x) after 100 iterations
-    assert data[0] == pytest.approx(y_energy, rel=1e-4)
-    assert data[-1] < data[0] / 200
+    # the data residual falls by more than 200x from that of x = 0 (||y||^2/2), and the first iterate
+    # already moves towards the data; seen: 17322 (x = 0) -> 4340 (iteration 1) -> 24.4 after 100
+    assert data[0] < 0.5 * y_energy
+    assert data[-1] < y_energy / 200
     obj = rec.log_array("objective")
     assert np.all(np.diff(obj[30:]) < 1e-3 * obj[30])  # no rise once the penalties have settled
     r0 = ref.admm(y, psf, padded_shape=rec.info["padded_shape"], **kw)
@@ -169,8 +169,6 @@ def test_bad_inputs(rt, monkeypatch):
         reconstruct(y32, zero)
     with pytest.raises(TypeError, match=r"unexpected keyword argument 'lambda1'"):
         reconstruct(y32, psf32, lambda1=1.0)
-    with pytest.raises(ValueError, match="measurement: has no positive value"):
-        reconstruct(np.zeros_like(y32), psf32)
     import cm2cl.device as device
     fake = device.Capabilities(**{**rt.caps.__dict__, "fp64": False})
     monkeypatch.setattr(rt, "caps", fake)

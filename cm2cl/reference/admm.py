@@ -10,9 +10,10 @@ from .tv import tv_prox, tv_value
 
 
 def normalisation(psf, y, padded_shape):
-    """(psf_scale, y_scale): ||H|| = 1 after scaling the PSFs, max(y) = 1 after scaling y."""
+    """(psf_scale, y_scale): ||H|| = 1 after scaling the PSFs, max|y| = 1 after scaling y (1 for y = 0)."""
     Hs = np.fft.rfft2(centered_psf(np.asarray(psf, np.float64), padded_shape))
-    return 1.0 / np.sqrt((np.abs(Hs) ** 2).sum(axis=0).max()), 1.0 / float(np.max(y))
+    ymax = float(np.max(np.abs(y)))
+    return 1.0 / np.sqrt((np.abs(Hs) ** 2).sum(axis=0).max()), (1.0 / ymax if ymax > 0 else 1.0)
 
 
 def admm(y, psf, params=None, padded_shape=None, dtype=np.float64, workers=None, callback=None,
@@ -54,6 +55,7 @@ def admm(y, psf, params=None, padded_shape=None, dtype=np.float64, workers=None,
     xi = np.zeros(P, dt)
     ctl = Control(p, ProblemScale.of(y * s_y, float(np.sum((psf * s_h) ** 2))), callback)
     l1, tv = ctl.l1, ctl.tv
+    v = (cty / (mask + ctl.mu_v)).astype(dt)  # the data split's minimiser at x = 0: the first x step sees the data
     sq = lambda a: float(np.sum(np.asarray(a, np.float64) ** 2))  # noqa: E731
     for it in range(1, p.max_iter + 1):
         mu_v, mu_u, mu_w = ctl.mu_v, ctl.mu_u, ctl.mu_w

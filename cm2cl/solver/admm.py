@@ -156,10 +156,9 @@ class ADMMSolver:
         y = validate.real_array(y, "measurement", ndims=(2,))
         if y.shape != self.M:
             raise InputError(f"measurement: shape {y.shape} does not match the PSF's sensor grid {self.M}")
-        ymax = float(np.max(y))
-        if self.p.normalize and not ymax > 0:
-            raise InputError("measurement: has no positive value (check the offset subtraction)")
-        y_scale = 1.0 / ymax if self.p.normalize else 1.0
+        ymax = float(np.max(np.abs(y)))
+        # an all-zero frame (a dark frame of a series) is legal: its answer is x = 0, reached at once
+        y_scale = 1.0 / ymax if self.p.normalize and ymax > 0 else 1.0
         y_n = np.asarray(y, np.float64) * y_scale   # normalised in float64 before the device sees it
 
         p, m, rt, q, R = self.p, self.model, self.rt, self.rt.queue, self.dtype.type
@@ -176,6 +175,11 @@ class ADMMSolver:
         ctl = Control(p, ProblemScale.of(y_n, self.spectral_mean), callback, callback_every)
         aw, iso = R(p.tv_axial_weight), I(1 if p.tv_isotropic else 0)
         step = R(p.tv_step)
+        # The data split starts at its minimiser for x = 0 (v = C^T y / (C^T C + mu_v)), not at 0, so that
+        # the first x step already moves towards the data (a 1-iteration solve is not all zeros).
+        v0 = np.zeros(self.P)
+        v0[oy:oy + my, ox:ox + mx] = y_n / (1.0 + ctl.mu_v)
+        self.v.set(v0[None])
         for it in range(1, p.max_iter + 1):
             mu_v, mu_u, mu_w = ctl.mu_v, ctl.mu_u, ctl.mu_w
             self.x_step(mu_v, mu_u, mu_w)

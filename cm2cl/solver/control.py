@@ -134,7 +134,8 @@ class Control:
         r_u, s_u = sq(ru2), self.mu_u * sq(du2)
         r_w, s_w = sq(rw2), self.mu_w * sq(dw2)
         nx = sq(x2)
-        floor = ABS_FRACTION * self.scale.y_norm
+        # (for y = 0 the answer is x = 0 and every norm is 0: the smallest positive floor lets 0/floor = 0)
+        floor = max(ABS_FRACTION * self.scale.y_norm, np.finfo(np.float64).tiny)
         # dual residuals are in units of mu * (split variable); their scale is the dual variable or,
         # while the duals are still building up from 0, mu times the split variable
         rel = {
