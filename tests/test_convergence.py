@@ -40,6 +40,35 @@ def test_default_weights_follow_the_noise_level():
     assert a.penalties(p) == (1.0, 1e-3, 1e-3)
 
 
+def test_default_weights_follow_the_back_projected_noise():
+    """Weights scale with sigma ||h_i|| (the noise of h_i^T y), ||h_i|| the RMS plane norm: a PSF spread
+    over 4x the pixels (||h_i||^2 / 4) or a stack of 4x the planes sharing the same total spectral power
+    halves them."""
+    p = ADMMParams()
+    base = ProblemScale(noise_sigma=1e-3, spectral_mean=1e-2, planes=4)
+    assert base.noise_x == pytest.approx(1e-3 * np.sqrt(1e-2 / 4))
+    assert base.weights(p) == pytest.approx((30 * base.noise_x,) * 2)
+    assert ProblemScale(1e-3, 1e-2 / 4, planes=4).weights(p)[0] == pytest.approx(base.weights(p)[0] / 2)
+    assert ProblemScale(1e-3, 1e-2, planes=16).weights(p)[0] == pytest.approx(base.weights(p)[0] / 2)
+
+
+def test_solver_reports_the_weights_from_the_psf_spread(rt):
+    """End to end, device and twin: the same measurement with a compact and a blurred PSF (its spectral
+    power, on the ||H|| = 1 scale, falls) gets weights in the ratio of the PSF norms."""
+    from scipy.ndimage import gaussian_filter
+
+    psf, _, y = bead_problem(3)
+    wide = np.stack([gaussian_filter(pl, 2.0) for pl in psf])
+    r1 = cm2cl.reconstruct(y, psf, max_iter=1, padded_shape=(64, 80))
+    r2 = cm2cl.reconstruct(y, wide, max_iter=1, padded_shape=(64, 80))
+    t1 = ref.admm(y, psf, max_iter=1, padded_shape=(64, 80))
+    assert r1.info["l1"] == pytest.approx(t1.info["l1"], rel=1e-5)
+    assert r1.info["noise_sigma"] == r2.info["noise_sigma"]
+    ratio = np.sqrt(r2.info["spectral_mean"] / r1.info["spectral_mean"])
+    assert r2.info["l1"] / r1.info["l1"] == pytest.approx(ratio, rel=1e-6)
+    assert ratio < 0.8
+
+
 def _control(**kw):
     return Control(ADMMParams(**kw), ProblemScale(noise_sigma=1e-3, spectral_mean=1e-3))
 

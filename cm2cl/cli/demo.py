@@ -78,7 +78,8 @@ def demo(outdir="cm2cl-demo", *, device=None, seed=None, max_iter: int = RECON["
     conv = ("converged: relative residuals and change below "
             f"{rec.info['tol']:g}" if rec.info["converged"] else "NOT converged: stopped at the iteration cap")
     say(f"  reconstructed on {dev} in {t_rec:.1f} s: {rec.iterations} iterations, {conv}; l1 {rec.info['l1']:.3g}, "
-        f"TV {rec.info['tv']:.3g} (noise level {rec.info['noise_sigma']:.3g} of the maximum)")
+        f"TV {rec.info['tv']:.3g} (volume-domain noise level {rec.info['noise_x']:.3g}; measurement noise "
+        f"{rec.info['noise_sigma']:.3g} of the maximum)")
 
     vol = np.asarray(rec.volume)
     dz, dxy = sim.voxel_size_um[0], sim.voxel_size_um[1]

@@ -30,10 +30,11 @@ def register(sub):
                    help="output OME-TIFF of the volume (name it *.ome.tif so that Fiji opens it with Bio-Formats)")
     g = r.add_argument_group("problem")
     g.add_argument("--l1", type=float, default=None,
-                   help="l1 weight on the normalised problem (default: %g x the measurement's estimated noise "
-                        "level, reported in the log)" % _DEFAULTS.l1_noise_ratio)
+                   help="l1 weight on the normalised problem (default: %g x the volume-domain noise level: the "
+                        "measurement's estimated noise times the RMS PSF plane norm, reported in the log)"
+                        % _DEFAULTS.l1_noise_ratio)
     g.add_argument("--tv", type=float, default=None,
-                   help="3D TV weight on the normalised problem, 0 disables TV (default: %g x the noise level)"
+                   help="3D TV weight on the normalised problem, 0 disables TV (default: %g x the volume-domain noise level)"
                         % _DEFAULTS.tv_noise_ratio)
     g.add_argument("--tv-axial-weight", type=float, default=_DEFAULTS.tv_axial_weight,
                    help="weight of axial differences in TV (non-cubic voxels: e.g. dx/dz)")
@@ -192,7 +193,8 @@ def command(args) -> int:
                 f"NOT converged: stopped at --max-iter, relative residuals {last['primal_rel']:.1e} / "
                 f"{last['dual_rel']:.1e} against tol {info['tol']:g}")
     print(f"{out}: {vol.shape} {vol.dtype} volume, {scale}; {rec.iterations} iterations, {how_stop}; "
-          f"l1 {info['l1']:.3g}, tv {info['tv']:.3g} (noise level {info['noise_sigma']:.3g} of max y); "
+          f"l1 {info['l1']:.3g}, tv {info['tv']:.3g} ({info['l1'] / info['noise_x'] if info['noise_x'] else 0:.3g} x the volume-domain noise level {info['noise_x']:.3g}; "
+          f"measurement noise {info['noise_sigma']:.3g} of max y); "
           f"objective {last['objective']:.4e}, {last['seconds']:.1f} s on {info['device']}; "
           f"log: {stem}.log.csv, {stem}.json")
     return 0

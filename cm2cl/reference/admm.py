@@ -53,7 +53,7 @@ def admm(y, psf, params=None, padded_shape=None, dtype=np.float64, workers=None,
     pd = np.zeros((3,) + x.shape, dt)
     v = np.zeros(P, dt)
     xi = np.zeros(P, dt)
-    ctl = Control(p, ProblemScale.of(y * s_y, float(np.sum((psf * s_h) ** 2))), callback)
+    ctl = Control(p, ProblemScale.of(y * s_y, float(np.sum((psf * s_h) ** 2)), nz), callback)
     l1, tv = ctl.l1, ctl.tv
     v = (cty / (mask + ctl.mu_v)).astype(dt)  # the data split's minimiser at x = 0: the first x step sees the data
     sq = lambda a: float(np.sum(np.asarray(a, np.float64) ** 2))  # noqa: E731

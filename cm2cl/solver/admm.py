@@ -172,7 +172,7 @@ class ADMMSolver:
         m.embed_from_sensor(sensor.slabs[0], self.cty.slabs[0])
         bounds = m.bounds
         nslab = len(bounds)
-        ctl = Control(p, ProblemScale.of(y_n, self.spectral_mean), callback, callback_every)
+        ctl = Control(p, ProblemScale.of(y_n, self.spectral_mean, self.nz), callback, callback_every)
         aw, iso = R(p.tv_axial_weight), I(1 if p.tv_isotropic else 0)
         step = R(p.tv_step)
         # The data split starts at its minimiser for x = 0 (v = C^T y / (C^T C + mu_v)), not at 0, so that
@@ -283,10 +283,11 @@ def reconstruct(measurement, psf, *,
         must carry some light. Float or integer.
     l1 : float or None
         Weight of the l1 (sparsity) term on the normalised problem. None (default):
-        ``l1_noise_ratio`` times the measurement's estimated noise level (``rec.info['noise_sigma']``).
+        ``l1_noise_ratio`` times the volume-domain noise level ``rec.info['noise_x']``: the
+        measurement's estimated noise (``rec.info['noise_sigma']``) times the RMS PSF plane norm.
     tv : float or None
         Weight of 3D total variation on the normalised problem; 0 disables TV. None (default):
-        ``tv_noise_ratio`` times the noise level.
+        ``tv_noise_ratio`` times the volume-domain noise level.
     tv_axial_weight : float
         Weight of axial differences in TV relative to lateral ones (dimensionless; non-cubic
         voxels: e.g. dx / dz).
@@ -313,7 +314,7 @@ def reconstruct(measurement, psf, *,
         Initial penalties of the splits v = Hx, u = x (TV), w = x (l1); None: from the problem's
         scale (see :class:`cm2cl.solver.control.ProblemScale`).
     l1_noise_ratio, tv_noise_ratio : float
-        Default weights relative to the noise level (when ``l1`` / ``tv`` are None).
+        Default weights relative to the volume-domain noise level (when ``l1`` / ``tv`` are None).
     normalize : bool
         Normalise y and H as above (default True).
     dtype : float32 (default) or float64 (devices with fp64 only).

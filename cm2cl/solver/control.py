@@ -43,18 +43,30 @@ class ProblemScale:
     spectral_mean: float
     #: ||y|| of the normalised measurement
     y_norm: float = 1.0
+    #: number of depth planes
+    planes: int = 1
 
     @classmethod
-    def of(cls, y_normalised, spectral_mean: float) -> "ProblemScale":
-        """From the normalised measurement (My, Mx) and sum_i ||h_i||^2 of the normalised PSF stack."""
+    def of(cls, y_normalised, spectral_mean: float, planes: int = 1) -> "ProblemScale":
+        """From the normalised measurement (My, Mx), sum_i ||h_i||^2 of the normalised PSF stack and the
+        number of planes."""
         y = np.asarray(y_normalised, np.float64)
         return cls(noise_sigma=max(noise_sigma(y), NOISE_FLOOR), spectral_mean=float(spectral_mean),
-                   y_norm=float(np.sqrt(np.sum(y * y))))
+                   y_norm=float(np.sqrt(np.sum(y * y))), planes=max(int(planes), 1))
+
+    @property
+    def noise_x(self) -> float:
+        """Noise level in the volume's domain: the standard deviation of the back-projection h_i^T n of
+        white sensor noise n (std noise_sigma) at one voxel, sigma ||h_i||, with ||h_i|| the RMS plane
+        norm sqrt(spectral_mean / planes). A weight above |h_i^T y| keeps voxel i at 0, so weights meant
+        to suppress noise scale with this, not with sigma: for a spread PSF (lensless, many planes)
+        ||h_i|| is far below ||H|| = 1, and weights of the order of sigma erase real structure."""
+        return self.noise_sigma * float(np.sqrt(self.spectral_mean / self.planes))
 
     def weights(self, p: ADMMParams) -> tuple[float, float]:
-        """(l1, tv): the given weights, or the defaults relative to the noise level."""
-        l1 = p.l1 if p.l1 is not None else p.l1_noise_ratio * self.noise_sigma
-        tv = p.tv if p.tv is not None else p.tv_noise_ratio * self.noise_sigma
+        """(l1, tv): the given weights, or the defaults relative to the volume-domain noise level."""
+        l1 = p.l1 if p.l1 is not None else p.l1_noise_ratio * self.noise_x
+        tv = p.tv if p.tv is not None else p.tv_noise_ratio * self.noise_x
         return float(l1), float(tv)
 
     def penalties(self, p: ADMMParams) -> tuple[float, float, float]:
@@ -175,6 +187,6 @@ class Control:
     def summary(self) -> dict:
         """What the result records about the control: why it stopped, and what the defaults came from."""
         return {"stop": self.stop, "converged": self.converged, "l1": self.l1, "tv": self.tv,
-                "noise_sigma": self.scale.noise_sigma, "spectral_mean": self.scale.spectral_mean,
+                "noise_sigma": self.scale.noise_sigma, "noise_x": self.scale.noise_x, "spectral_mean": self.scale.spectral_mean,
                 "initial_penalties": {"mu_v": self.mu0[0], "mu_u": self.mu0[1], "mu_w": self.mu0[2]},
                 "penalty_policy": self.p.penalty, "tol": self.p.tol, "tol_change": self.p.tol_change}

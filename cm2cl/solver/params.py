@@ -34,16 +34,20 @@ PRESETS = {
 @dataclass(frozen=True)
 class ADMMParams:
     #: weight of the l1 (sparsity) term on the normalised problem; None = ``l1_noise_ratio`` times the
-    #: measurement's estimated noise level (see :func:`cm2cl.solver.control.noise_sigma`)
+    #: volume-domain noise level (:attr:`cm2cl.solver.control.ProblemScale.noise_x`: the measurement's
+    #: estimated noise sigma times the RMS PSF plane norm)
     l1: float | None = None
     #: weight of the 3D total variation term on the normalised problem (0 disables TV); None =
-    #: ``tv_noise_ratio`` times the noise level
+    #: ``tv_noise_ratio`` times the volume-domain noise level
     tv: float | None = None
-    #: default weights relative to the noise level sigma of the normalised measurement (max 1). The
-    #: ratio 1 reproduces the former fixed default 1e-3 at the noise level of the real DiffuserCam
-    #: data (sigma ~ 1.0e-3 and 1.1e-3 of the maximum); a measurement 10x noisier gets 10x the weight.
-    l1_noise_ratio: float = 1.0
-    tv_noise_ratio: float = 1.0
+    #: default weights relative to the volume-domain noise level noise_x = sigma sqrt(sum_i ||h_i||^2 / nz)
+    #: (sigma of the measurement scaled to max 1, PSFs to ||H|| = 1). The ratio 30 was chosen on a sweep
+    #: (docs/weights.md): on bead scenes it gives about the former sigma-relative weights (noise_x ~
+    #: sigma / 15 there), on the real DiffuserCam 3D data (44 spread planes, noise_x = sigma / 800) weights
+    #: 25x lower, which show the tilted target the former weights erased. A 10x noisier measurement gets
+    #: 10x the weight.
+    l1_noise_ratio: float = 30.0
+    tv_noise_ratio: float = 30.0
     #: TV weight of the axial difference relative to the lateral ones (voxels are not cubic:
     #: dz >> dx makes axial neighbours less alike; a common choice is dx / dz)
     tv_axial_weight: float = 1.0
@@ -65,10 +69,13 @@ class ADMMParams:
     #: bounded by `adapt_max_step`; checked at iterations 1..10, then every 10th, up to `adapt_until`
     #: (then the penalties stay, and ADMM's convergence with fixed penalties holds). The initial penalties
     #: from the problem's scale are near the best fixed ones on the data measured (docs/accuracy_vs_time.md),
-    #: so only a large imbalance (a poor start, or user penalties far off) moves them.
+    #: so only a large imbalance (a poor start, or user penalties far off) moves them. The ratio 1000 (not
+    #: 100): in the first iterations the duals are still building up and r/s reads 100-1000 on a start
+    #: that is fine; on the real DiffuserCam 3D data 100 let that transient raise mu_w 700x and the
+    #: objective after 200 iterations was 14% higher (docs/weights.md); bead scenes are unchanged.
     balance_factor: float = 1.1
     balance_ratio: float = 1.5
-    adapt_ratio: float = 100.0
+    adapt_ratio: float = 1000.0
     adapt_max_step: float = 3.0
     adapt_until: int = 100
     #: penalties stay within [initial / mu_range, initial * mu_range]
