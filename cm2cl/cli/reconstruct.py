@@ -24,7 +24,9 @@ _DEFAULTS = ADMMParams()
 def register(sub):
     r = sub.add_parser("reconstruct", help="reconstruct a 3D volume from one CM2 measurement",
                        description=__doc__)
-    r.add_argument("measurement", help="2D TIFF of the measurement")
+    r.add_argument("measurement", nargs="+",
+                   help="2D TIFF of the measurement; or, with an OME-Zarr output (-o OUT.ome.zarr), the frames of a "
+                        "series: multi-page TIFFs, folders of TIFFs, globs (quoted)")
     r.add_argument("--psf", required=True, help="3D TIFF of the PSF stack (nz, My, Mx), same sensor grid")
     r.add_argument("-o", "--output", required=True,
                    help="output OME-TIFF of the volume (name it *.ome.tif so that Fiji opens it with Bio-Formats)")
@@ -58,7 +60,12 @@ def register(sub):
                         "balance (the CM2 authors' x1.1 steps), fixed (default %(default)s)")
     g.add_argument("--dtype", choices=["float32", "float64"], default="float32")
     g.add_argument("--backend", default="auto", help="FFT backend: auto, cl, vkfft, reikna")
-    g.add_argument("--device", default=None, help="device index or name fragment (see cm2cl devices)")
+    g.add_argument("--device", default=None,
+                   help="device index or name fragment (see cm2cl devices); for a series also 'all' or '0,2' "
+                        "(one worker per device)")
+    g.add_argument("--scheduler", default=None,
+                   help="series: run the frames on this Dask distributed scheduler (tcp://host:port) instead of "
+                        "the local devices; pin each worker to a device with CM2CL_DEVICE")
     g = r.add_argument_group("input preparation")
     g.add_argument("--offset", default="none",
                    help="camera offset to subtract: 'none', 'auto' (mean of pixels [5:15, 5:15]) or a number")
@@ -136,8 +143,18 @@ def command(args) -> int:
     from ..solver import reconstruct
 
     out = Path(args.output)
+    if out.suffix.lower() == ".zarr":
+        from . import series
+
+        return series.command(args)
+    if len(args.measurement) != 1:
+        raise InputError(f"measurement: {len(args.measurement)} inputs given; a series needs an OME-Zarr output "
+                         "(-o OUT.ome.zarr)")
+    if args.scheduler:
+        raise InputError("--scheduler: only for a series written to an OME-Zarr output (-o OUT.ome.zarr)")
+    args.measurement = args.measurement[0]
     if out.suffix.lower() not in (".tif", ".tiff"):
-        raise InputError(f"--output '{out}': must end in .ome.tif, .tif or .tiff")
+        raise InputError(f"--output '{out}': must end in .ome.tif, .tif or .tiff (or .ome.zarr for a series)")
     if not out.parent.exists():
         raise InputError(f"--output '{out}': folder '{out.parent}' does not exist")
     for src in (args.measurement, args.psf):

@@ -48,9 +48,10 @@ class ADMMSolver:
         # a first normalisation in float64 on the host, so that no input scale over- or underflows
         # in float32 on the device: sum_i (sum |h_i|)^2 bounds max_k sum_i |H_i(k)|^2 from above
         self.psf_prescale = 1.0
+        psf = np.asarray(psf, np.float64)   # float32 input too: its sums in float64
         if params.normalize:
             self.psf_prescale = 1.0 / np.sqrt(np.sum(np.abs(psf).reshape(psf.shape[0], -1).sum(axis=1) ** 2))
-        psf = np.asarray(psf, np.float64) * self.psf_prescale
+        psf = psf * self.psf_prescale
         self.p = params
         self.rt = rt = get_runtime(device)
         self.dtype = rt.check_dtype(dtype)

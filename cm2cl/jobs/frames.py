@@ -1,0 +1,106 @@
+"""A time series as a list of 2D frames: one multi-page TIFF (a (T, My, Mx) series), a folder of TIFFs, a
+glob, or several of those, in order. Shapes and dtypes come from the TIFF headers, so a series whose
+frames differ is refused before any pixel is decoded; frames are decoded one at a time."""
+
+from __future__ import annotations
+
+import glob as _glob
+import hashlib
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+
+_TIFF = (".tif", ".tiff")
+
+
+@dataclass(frozen=True)
+class Frame:
+    path: str
+    index: int          #: index along the file's first axis (0 for a 2D file)
+    shape: tuple
+    dtype: str
+
+
+def _expand(source: str) -> list[Path]:
+    p = Path(source)
+    if any(c in source for c in "*?["):
+        files = sorted(Path(f) for f in _glob.glob(source) if f.lower().endswith(_TIFF))
+        if not files:
+            raise InputError(f"measurement '{source}': the pattern matches no TIFF file")
+        return files
+    if p.is_dir():
+        files = sorted(f for f in p.iterdir() if f.suffix.lower() in _TIFF)
+        if not files:
+            raise InputError(f"measurement '{source}': the folder holds no .tif/.tiff file")
+        return files
+    if not p.exists():
+        raise InputError(f"measurement '{source}': no such file")
+    return [p]
+
+
+def _frames_of(path: Path) -> list[Frame]:
+    import tifffile
+
+    try:
+        with tifffile.TiffFile(path) as t:
+            s = t.series[0]
+            shape, dtype = tuple(int(n) for n in s.shape), np.dtype(s.dtype)
+    except Exception as exc:  # noqa: BLE001 - any unreadable file gets one line
+        raise InputError(f"measurement '{path}': not a readable TIFF ({exc})") from exc
+    shape = tuple(n for n in shape if n != 1) if len(shape) > 3 else shape
+    if dtype.kind not in "uif":
+        raise InputError(f"measurement '{path}': dtype {dtype} is not numeric")
+    if len(shape) == 2:
+        return [Frame(str(path), 0, shape, dtype.str)]
+    if len(shape) == 3:
+        return [Frame(str(path), i, shape[1:], dtype.str) for i in range(shape[0])]
+    raise InputError(f"measurement '{path}': expected 2D frames or a (T, My, Mx) series, got shape {shape}")
+
+
+class FrameSeries:
+    """The frames of ``sources`` (files, folders, globs), in order, all of one shape."""
+
+    def __init__(self, sources):
+        sources = [sources] if isinstance(sources, (str, Path)) else list(sources)
+        if not sources:
+            raise InputError("measurement: no frames given")
+        self.frames: list[Frame] = []
+        for s in sources:
+            for f in _expand(str(s)):
+                self.frames.extend(_frames_of(f))
+        if not self.frames:
+            raise InputError(f"measurement: no frames in {', '.join(map(str, sources))}")
+        first = self.frames[0]
+        for f in self.frames[1:]:
+            if f.shape != first.shape:
+                raise InputError(f"measurement '{f.path}' (frame {f.index}): shape {f.shape} differs from the "
+                                 f"first frame's {first.shape} ('{first.path}'); one job takes frames of one shape")
+        self.shape = first.shape
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def read(self, i: int) -> np.ndarray:
+        """Frame ``i`` as decoded from its file (its own dtype)."""
+        import tifffile
+        import zarr
+
+        f = self.frames[i]
+        with tifffile.TiffFile(f.path) as t:
+            s = t.series[0]
+            if len(s.shape) == 2:
+                return s.asarray()
+            a = zarr.open(s.aszarr(), mode="r")
+            return np.asarray(a[f.index]).reshape(self.shape)
+
+    def identity(self) -> str:
+        """A digest of which frames these are: paths, indices, sizes and modification times (a changed
+        file makes a different job)."""
+        h = hashlib.sha256()
+        for f in self.frames:
+            st = Path(f.path).stat()
+            h.update(f"{Path(f.path).resolve()}|{f.index}|{st.st_size}|{st.st_mtime_ns}\n".encode())
+        return h.hexdigest()

@@ -1,0 +1,159 @@
+"""The output of a job of many frames: an OME-Zarr store (NGFF 0.4, Zarr format 2, readable by napari's
+OME-Zarr readers, Fiji's N5/Zarr readers and zarr-python) holding a (T, Z, Y, X) array, one chunk per
+frame, with the physical scale in its ``multiscales`` metadata.
+
+Resume: a frame counts as done only when its chunk is wholly written, marked by a file
+``.cm2cl-done/NNNNNNNN`` created after the chunk; a run killed at any point leaves at most a chunk without
+a marker, which the next run recomputes. The store records a fingerprint of the job (PSF, parameters,
+frames, dtype); a store of another job is refused, never mixed into. One run at a time: a lock file
+held for the run's duration refuses a second run on the same store.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+
+DONE = ".cm2cl-done"
+#: fault injection for tests: CM2CL_FAULT=after_chunk.N kills the process (SIGKILL) after frame N's chunk
+#: is written and before it is marked done
+FAULT_ENV = "CM2CL_FAULT"
+LOCK = ".cm2cl-lock"
+
+
+def ngff_multiscales(name: str, voxel_size_um, ndim: int = 4) -> list[dict]:
+    """NGFF 0.4 ``multiscales`` for a (t, z, y, x) array: micrometre scale when known, unit-less pixels
+    otherwise."""
+    axes = [{"name": "t", "type": "time"}] + [
+        {"name": a, "type": "space", **({"unit": "micrometer"} if voxel_size_um else {})} for a in "zyx"]
+    scale = [1.0] + ([float(v) for v in voxel_size_um] if voxel_size_um else [1.0, 1.0, 1.0])
+    return [{"version": "0.4", "name": name, "axes": axes[-ndim:],
+             "datasets": [{"path": "0", "coordinateTransformations": [{"type": "scale", "scale": scale[-ndim:]}]}]}]
+
+
+def _fault_point(name: str) -> None:
+    if os.environ.get(FAULT_ENV) == name:
+        import signal
+
+        os.kill(os.getpid(), signal.SIGKILL)
+
+
+class FrameStore:
+    """An open store of ``n_frames`` volumes of ``volume_shape``; use :meth:`open`."""
+
+    def __init__(self, path: Path, array, lock_fd):
+        self.path, self.array, self._lock = path, array, lock_fd
+
+    @classmethod
+    def open(cls, path, *, fingerprint: str, n_frames: int, volume_shape, dtype, voxel_size_um=None,
+             depths_um=None, record: dict | None = None) -> "FrameStore":
+        """Create the store (whole, by a rename: never a half-made store) or reopen it for a resume."""
+        import zarr
+
+        path = Path(path)
+        if path.exists() and not path.is_dir():
+            raise InputError(f"--output '{path}': exists and is not an OME-Zarr folder")
+        if not path.parent.is_dir():
+            raise InputError(f"--output '{path}': folder '{path.parent}' does not exist")
+        shape = (int(n_frames),) + tuple(int(n) for n in volume_shape)
+        if not path.exists():
+            tmp = path.with_name(f".{path.name}.partial-{os.getpid()}")
+            shutil.rmtree(tmp, ignore_errors=True)
+            try:
+                g = zarr.open_group(str(tmp), mode="w", zarr_format=2)
+                g.create_array("0", shape=shape, chunks=(1,) + shape[1:], dtype=np.dtype(dtype), fill_value=0)
+                g.attrs.update({"multiscales": ngff_multiscales(path.name, voxel_size_um),
+                                "cm2cl": {"fingerprint": fingerprint, "n_frames": int(n_frames),
+                                          "volume_shape": list(shape[1:]), "dtype": np.dtype(dtype).name,
+                                          "voxel_size_um": list(voxel_size_um) if voxel_size_um else None,
+                                          "depths_um": [float(d) for d in depths_um] if depths_um is not None else None,
+                                          **(record or {})}})
+                (tmp / DONE).mkdir()
+                os.rename(tmp, path)
+            except OSError as exc:
+                shutil.rmtree(tmp, ignore_errors=True)
+                if not path.exists():
+                    raise InputError(f"--output '{path}': cannot create the store ({exc.strerror or exc})") from exc
+        return cls._reopen(path, fingerprint, shape)
+
+    @classmethod
+    def _reopen(cls, path: Path, fingerprint: str, shape) -> "FrameStore":
+        import fcntl
+
+        import zarr
+
+        try:
+            g = zarr.open_group(str(path), mode="r+", zarr_format=2)
+            meta = dict(g.attrs).get("cm2cl")
+        except Exception as exc:  # noqa: BLE001 - not a zarr group at all
+            raise InputError(f"--output '{path}': exists and is not a cm2cl OME-Zarr store; not overwritten") from exc
+        if not meta or not (path / DONE).is_dir():
+            raise InputError(f"--output '{path}': exists and is not a cm2cl OME-Zarr store; not overwritten")
+        if meta.get("fingerprint") != fingerprint:
+            raise InputError(f"--output '{path}': holds another job (different PSF, parameters or frames); "
+                             "refusing to mix results: choose a new output")
+        arr = g["0"]
+        if tuple(arr.shape) != tuple(shape):
+            raise InputError(f"--output '{path}': holds an array of shape {tuple(arr.shape)}, this job needs {shape}")
+        fd = os.open(path / LOCK, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as exc:
+            os.close(fd)
+            raise InputError(f"--output '{path}': another run is writing this store; wait for it or choose "
+                             "another output") from exc
+        return cls(path, arr, fd)
+
+    @property
+    def n_frames(self) -> int:
+        return int(self.array.shape[0])
+
+    def done(self) -> set[int]:
+        return {int(p.name) for p in (self.path / DONE).iterdir() if p.name.isdigit()}
+
+    def missing(self) -> list[int]:
+        d = self.done()
+        return [i for i in range(self.n_frames) if i not in d]
+
+    def write(self, i: int, volume, info: dict | None = None) -> None:
+        """Write frame ``i``'s volume, then mark it done: the marker (carrying ``info``, the frame's
+        summary, as JSON) is renamed into place only after the whole chunk is written."""
+        import threading
+
+        self.array[int(i)] = np.asarray(volume, self.array.dtype)
+        _fault_point(f"after_chunk.{int(i)}")
+        d = self.path / DONE
+        tmp = d / f".{int(i):08d}.{os.getpid()}.{threading.get_ident()}"
+        tmp.write_text(json.dumps(info or {}))
+        os.replace(tmp, d / f"{int(i):08d}")
+
+    def info(self, i: int) -> dict:
+        """The summary recorded with frame ``i`` when it was marked done."""
+        return json.loads((self.path / DONE / f"{int(i):08d}").read_text() or "{}")
+
+    def read(self, i: int) -> np.ndarray:
+        return np.asarray(self.array[int(i)])
+
+    def close(self) -> None:
+        if self._lock is not None:
+            os.close(self._lock)
+            self._lock = None
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+def read_record(path) -> dict:
+    """The store's cm2cl record (fingerprint, shape, scale, job parameters)."""
+    import zarr
+
+    return json.loads(json.dumps(dict(zarr.open_group(str(path), mode="r", zarr_format=2).attrs)["cm2cl"]))

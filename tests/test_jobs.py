@@ -1,0 +1,141 @@
+"""Series jobs (issue 9, part): frames read from headers, an OME-Zarr store that resumes a killed job to
+the same bits, refuses another job's store, and runs on a Dask LocalCluster on loopback."""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import tifffile
+
+zarr = pytest.importorskip("zarr")
+
+import cm2cl  # noqa: E402
+from cm2cl import io as cio  # noqa: E402
+from cm2cl.errors import InputError  # noqa: E402
+from cm2cl.jobs import FrameSeries  # noqa: E402
+from test_admm import bead_problem  # noqa: E402
+
+P = (64, 80)
+ARGS = ["--max-iter", "25", "--tol", "0", "--quiet"]
+
+
+def _series(tmp_path, n=4):
+    """n frames: the bead problem's emitters moved between frames; a (n, My, Mx) multi-page TIFF and the
+    PSF as an OME-TIFF with an object-space voxel size."""
+    psf, _, _ = bead_problem(7)
+    frames = []
+    for t in range(n):
+        _, x, _ = bead_problem(7, emitters=((t % 4, 10 + t, 12), (1, 20, 30 - t), (2, 5 + t, 25)))
+        from cm2cl import reference as ref
+        frames.append(ref.forward(psf, x, P) * 1000)
+    frames = np.stack(frames).astype(np.float32)
+    tifffile.imwrite(tmp_path / "series.tif", frames, photometric="minisblack")
+    cio.write_tiff(tmp_path / "psf.ome.tif", psf.astype(np.float32), voxel_size_um=(10.0, 2.0, 2.0),
+                   extra={"voxel_space": cio.OBJECT_SPACE})
+    return psf, frames
+
+
+def _cli(*args, env=None):
+    e = {**os.environ, **(env or {})}
+    return subprocess.run([sys.executable, "-m", "cm2cl", *map(str, args)], capture_output=True, text=True, env=e)
+
+
+def _job(tmp_path, out, *extra, env=None):
+    return _cli("reconstruct", tmp_path / "series.tif", "--psf", tmp_path / "psf.ome.tif", "-o", out, *ARGS, *extra,
+                env=env)
+
+
+def test_series_frames_equal_single_frame_solves_and_carry_the_scale(rt, tmp_path):
+    psf, frames = _series(tmp_path)
+    r = _job(tmp_path, tmp_path / "out.ome.zarr")
+    assert r.returncode == 0, r.stderr
+    assert "4 frames" in r.stdout and "4 computed" in r.stdout
+    g = zarr.open_group(str(tmp_path / "out.ome.zarr"), mode="r")
+    arr = np.asarray(g["0"])
+    assert arr.shape == (4, 4, 32, 40)
+    ms = g.attrs["multiscales"][0]
+    assert [a["name"] for a in ms["axes"]] == ["t", "z", "y", "x"]
+    assert ms["axes"][1]["unit"] == "micrometer"
+    assert ms["datasets"][0]["coordinateTransformations"][0]["scale"] == [1.0, 10.0, 2.0, 2.0]
+    for t in (0, 3):   # the solver built once and reused gives what a fresh solve of that frame gives
+        one = cm2cl.reconstruct(frames[t], psf.astype(np.float32), max_iter=25, tol=0)
+        np.testing.assert_array_equal(arr[t], one.volume)
+
+
+def test_killed_job_resumes_to_identical_output(rt, tmp_path):
+    """Killed (SIGKILL) after frame 1's chunk is written but before it is marked done: the rerun of the
+    same command recomputes only frames 1.., and the store equals an uninterrupted run's bit for bit."""
+    _series(tmp_path)
+    ref = tmp_path / "ref.ome.zarr"
+    assert _job(tmp_path, ref).returncode == 0
+    out = tmp_path / "out.ome.zarr"
+    r = _job(tmp_path, out, env={"CM2CL_FAULT": "after_chunk.1"})
+    assert r.returncode == -9, (r.returncode, r.stderr)
+    done = sorted(p.name for p in (out / ".cm2cl-done").iterdir() if not p.name.startswith("."))
+    assert done == ["00000000"]
+    r = _job(tmp_path, out)
+    assert r.returncode == 0, r.stderr
+    assert "3 computed" in r.stdout and "1 already done" in r.stdout
+    a = np.asarray(zarr.open_group(str(out), mode="r")["0"])
+    b = np.asarray(zarr.open_group(str(ref), mode="r")["0"])
+    np.testing.assert_array_equal(a, b)
+    info = json.loads((out / ".cm2cl-done" / "00000002").read_text())
+    assert info["iterations"] == 25
+    r = _job(tmp_path, out)       # nothing left to do
+    assert r.returncode == 0 and "0 computed" in r.stdout and "4 already done" in r.stdout
+
+
+def test_a_store_of_another_job_is_refused_and_left_alone(rt, tmp_path):
+    _series(tmp_path)
+    out = tmp_path / "out.ome.zarr"
+    assert _job(tmp_path, out).returncode == 0
+    before = np.asarray(zarr.open_group(str(out), mode="r")["0"])
+    r = _job(tmp_path, out, "--l1", "0.01")
+    assert r.returncode == 2
+    assert "holds another job" in r.stderr and len(r.stderr.strip().splitlines()) == 1
+    np.testing.assert_array_equal(np.asarray(zarr.open_group(str(out), mode="r")["0"]), before)
+    # a folder that is not a cm2cl store is not touched either
+    (tmp_path / "other.zarr").mkdir()
+    (tmp_path / "other.zarr" / "keep.txt").write_text("mine")
+    r = _job(tmp_path, tmp_path / "other.zarr")
+    assert r.returncode == 2 and "not a cm2cl OME-Zarr store" in r.stderr
+    assert (tmp_path / "other.zarr" / "keep.txt").read_text() == "mine"
+
+
+def test_bad_series_inputs_are_refused_before_any_output(rt, tmp_path):
+    _series(tmp_path)
+    tifffile.imwrite(tmp_path / "odd.tif", np.zeros((30, 40), np.float32))
+    out = tmp_path / "o.ome.zarr"
+    r = _cli("reconstruct", tmp_path / "series.tif", tmp_path / "odd.tif", "--psf", tmp_path / "psf.ome.tif",
+             "-o", out, *ARGS)
+    assert r.returncode == 2 and "odd.tif" in r.stderr and "differs from the first frame" in r.stderr
+    r = _job(tmp_path, out, "--device", "17")
+    assert r.returncode == 2 and "17" in r.stderr
+    r = _job(tmp_path, out, "--scheduler", "tcp://127.0.0.1:9")
+    assert r.returncode == 2 and "no Dask scheduler answers" in r.stderr
+    r = _cli("reconstruct", tmp_path / "series.tif", tmp_path / "odd.tif", "--psf", tmp_path / "psf.ome.tif",
+             "-o", tmp_path / "v.ome.tif", *ARGS)
+    assert r.returncode == 2 and "needs an OME-Zarr output" in r.stderr
+    assert not out.exists() and not (tmp_path / "v.ome.tif").exists()
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
+    with pytest.raises(InputError, match="no such file"):
+        FrameSeries([tmp_path / "missing.tif"])
+
+
+def test_dask_local_cluster_gives_the_local_result(rt, tmp_path):
+    distributed = pytest.importorskip("distributed")
+    _series(tmp_path, n=3)
+    ref = tmp_path / "ref.ome.zarr"
+    assert _job(tmp_path, ref).returncode == 0
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, host="127.0.0.1", processes=True,
+                                  dashboard_address=None) as cluster:
+        r = _job(tmp_path, tmp_path / "dask.ome.zarr", "--scheduler", cluster.scheduler_address)
+    assert r.returncode == 0, r.stderr
+    assert "3 computed" in r.stdout and cluster.scheduler_address in r.stdout
+    a = np.asarray(zarr.open_group(str(tmp_path / "dask.ome.zarr"), mode="r")["0"])
+    b = np.asarray(zarr.open_group(str(ref), mode="r")["0"])
+    np.testing.assert_array_equal(a, b)
