@@ -15,6 +15,7 @@ Writes docs/weights.md.
 from __future__ import annotations
 
 import argparse
+import re
 import sys
 import time
 from pathlib import Path
@@ -52,7 +53,7 @@ def run(case, label, **kw) -> dict:
         m = analysis.score_beads(rec.volume, case["sim"])
         row.update(recall=m["recall"], precision=m["precision"], lateral_rms_um=m["lateral_rms_um"])
     else:
-        png = f"weights_{case['name']}_{label.replace(' ', '_').replace('=', '')}.png"
+        png = f"weights_{case['name']}_{re.sub(r'[^A-Za-z0-9.]+', '_', label.replace('=', '')).strip('_')}.png"
         analysis.mip_png(rec.volume, DOCS / "img" / png, title=f"DiffuserCam 3D, {label}, weight {rec.info['l1']:.2g}",
                          gamma=0.6)
         row["mip"] = png
@@ -94,7 +95,14 @@ def main(argv=None):
         lines.append(f"| {r['case']} | {r['config']} | {r['weight']:.3g} | {r['iterations']} | {r['converged']} | "
                      f"{r['objective']:.5g} | {r['residual']:.4f} | {g('recall', '%.2f')} | {g('precision', '%.2f')} | "
                      f"{g('lateral_rms_um', '%.1f')} | {r['seconds']:.0f} |")
-    lines += ["", "DiffuserCam 3D MIPs (depth colour-coded; the scene is a resolution target tilted in depth):", ""]
+    lines += ["", "Reading: on the bead scenes the weights at c = 30 are about the former ones (noise_x is sigma / 14 "
+              "there) and give all beads of the demo and recall 0.83 at precision 1.00 with model mismatch, "
+              "converged within 200 iterations; lower c finds as many or more beads but false maxima multiply "
+              "(precision 0.36-0.63 at c = 1). On the real DiffuserCam 3D data (noise_x = sigma / 781) the former "
+              "weights leave a blob (residual 0.074); every c <= 100 fits the data to 0.060-0.063 and shows the "
+              "bar groups. c = 30 is the default: the largest that keeps the lensless data's structure, and the "
+              "bead scenes' precision. The adaptation threshold 1000 against 100: same on the beads, a 12% lower "
+              "objective after 200 iterations on DiffuserCam 3D.", "", "DiffuserCam 3D MIPs (depth colour-coded; the scene is a resolution target tilted in depth):", ""]
     lines += [f"![{r['config']}](img/{r['mip']})" for r in rows if "mip" in r]
     (DOCS / "weights.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
