@@ -30,9 +30,9 @@ def test_reconstruct_writes_volume_and_log(rt, tmp_path, capsys):
     vol, meta = io.read_tiff(out)
     assert vol.shape == (4, 32, 40) and vol.dtype == np.float32 and vol.min() >= 0 and vol.max() > 0
     assert meta["extra"]["scaling"]["y_scale"] > 0
-    rows = (tmp_path / "vol.log.csv").read_text().splitlines()
+    rows = (tmp_path / "vol.cm2cl.log.csv").read_text().splitlines()
     assert rows[0].startswith("iter,objective,data") and len(rows) == 41
-    doc = json.loads((tmp_path / "vol.json").read_text())
+    doc = json.loads((tmp_path / "vol.cm2cl.json").read_text())
     assert doc["params"]["max_iter"] == 40 and len(doc["log"]) == 40
     assert not list(tmp_path.glob("*.partial"))
 
@@ -51,7 +51,7 @@ def test_reconstruct_bad_input_writes_nothing(rt, tmp_path, capsys):
         assert main(argv + ["-o", str(out), "--quiet"]) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and msg in err[0] and err[0].startswith("cm2cl: error:")
-        assert not out.exists() and not (tmp_path / "out.log.csv").exists()
+        assert not out.exists() and not (tmp_path / "out.cm2cl.log.csv").exists()
 
 
 def test_reconstruct_labels_the_volume_with_the_ground_truths_object_space_scale(rt, tmp_path, capsys):
@@ -68,7 +68,7 @@ def test_reconstruct_labels_the_volume_with_the_ground_truths_object_space_scale
     assert ome_scale(out) == ome_scale(gt)
     assert resolution_um(out) == pytest.approx(resolution_um(gt), rel=1e-9)
     assert "voxel 250 x 42.24 x 42.24 um" in capsys.readouterr().out
-    assert (tmp_path / "vol.log.csv").exists() and (tmp_path / "vol.json").exists()
+    assert (tmp_path / "vol.cm2cl.log.csv").exists() and (tmp_path / "vol.cm2cl.json").exists()
     with tifffile.TiffFile(out) as tf:
         assert tf.series[0].dtype == np.float32
     # binning widens the lateral voxel, depths stay; a float64 solve gives a float64 volume

@@ -56,7 +56,7 @@ def demo(outdir="cm2cl-demo", *, device=None, seed=None, max_iter: int = RECON["
     if max_iter < 1:
         raise InputError(f"--iterations: must be >= 1, got {max_iter}")
     out = Path(outdir)
-    check_output_dir(out)
+    check_output_dir(out, "demo.json")
     t0 = time.perf_counter()
 
     scene = load_scene(SCENE)
@@ -124,7 +124,7 @@ def demo(outdir="cm2cl-demo", *, device=None, seed=None, max_iter: int = RECON["
             f"(plane spacing {dz:.0f} um)")
 
     # outputs: build next to OUTDIR, move in at the end, demo.json last
-    with StagedOutput(out) as stage:
+    with StagedOutput(out, "demo.json") as stage:
         tmp = stage.dir
         write_simulation(sim, tmp / "simulation")
         write_tiff(tmp / "reconstruction.ome.tif", vol.astype(np.float32), voxel_size_um=rec.voxel_size_um,

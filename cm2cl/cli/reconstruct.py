@@ -1,5 +1,5 @@
 """``cm2cl reconstruct MEAS.tif --psf PSF.ome.tif -o OUT.ome.tif``: one frame, with a progress bar and
-the iteration log written next to the output (OUT.log.csv and OUT.json).
+the iteration log written next to the output (OUT.cm2cl.log.csv and the record OUT.cm2cl.json).
 
 The volume is OME-TIFF in the dtype of the solve (float32, or float64 with ``--dtype float64``). Its
 physical scale comes from the PSF stack when the PSF says its voxel size is object-space (the
@@ -95,7 +95,7 @@ def _offset(text: str):
 class Progress:
     """One tqdm bar on ``stream`` (stderr): iterations, with objective and primal / dual residuals as
     its postfix. Off with ``--quiet`` and when the stream is not a terminal (logs, pipes, batch jobs):
-    the summary line and OUT.log.csv say how the run went."""
+    the summary line and OUT.cm2cl.log.csv say how the run went."""
 
     def __init__(self, total: int, quiet: bool, stream=None):
         stream = sys.stderr if stream is None else stream
@@ -155,6 +155,8 @@ def command(args) -> int:
     args.measurement = args.measurement[0]
     if out.suffix.lower() not in (".tif", ".tiff"):
         raise InputError(f"--output '{out}': must end in .ome.tif, .tif or .tiff (or .ome.zarr for a series)")
+    if out.is_dir():
+        raise InputError(f"--output '{out}': is a directory; give a file name (e.g. {out / 'volume.ome.tif'})")
     if not out.parent.exists():
         raise InputError(f"--output '{out}': folder '{out.parent}' does not exist")
     for src in (args.measurement, args.psf):
@@ -183,23 +185,44 @@ def command(args) -> int:
     given = {k: v for k, v in (("max_iter", args.max_iter), ("tol", args.tol), ("tol_change", args.tol_change))
              if v is not None}
     params.update({**PRESETS[args.preset or "balanced"], **given})
+    # the output is checked (writable, room, sidecars, no other run on it) and locked before the solve
+    from ..io.publish import OutputSet
+
+    planes, ny, nx = h.shape
+    vol_bytes = planes * (2 * ny * 2 * nx if args.padded else ny * nx) * dt.itemsize
+    outset = OutputSet(out, expected_bytes=vol_bytes, inputs=(args.measurement, args.psf))
     progress = Progress(params.get("max_iter", _DEFAULTS.max_iter), args.quiet)
     try:
-        rec = reconstruct(y, h, dtype=dt, backend=args.backend, device=args.device,
-                          callback=progress, voxel_size_um=vs, depths_um=depths, **params)
-    finally:
-        progress.close()
+        with outset:
+            try:
+                rec = reconstruct(y, h, dtype=dt, backend=args.backend, device=args.device,
+                                  callback=progress, voxel_size_um=vs, depths_um=depths, **params)
+            finally:
+                progress.close()
+            vol = _write(args, out, outset, rec, dt, how)
+    except OSError as exc:   # a full disk or a vanished folder while writing: nothing is left behind
+        raise InputError(f"--output '{out}': writing failed ({exc.strerror or exc}); nothing was written") from exc
+    _report(out, outset, rec, how, vol)
+    return 0
+
+
+def _write(args, out, outset, rec, dt, how):
+    from .. import io
+
     # the volume in the dtype of the solve (the solver's rescaling may promote it to float64)
     vol = (rec.volume_padded if args.padded else rec.volume).astype(dt, copy=False)
     extra = {"what": "cm2cl reconstruction", "measurement": str(args.measurement), "psf": str(args.psf),
              "params": rec.params, "scaling": rec.scaling, "info": rec.info, "padded": bool(args.padded),
              "voxel_space": io.OBJECT_SPACE if rec.voxel_size_um else None, "scale": how}
-    stem = io.tiff_stem(out)
-    tmp = out.with_name(out.name + ".partial")
-    io.write_tiff(tmp, vol, voxel_size_um=rec.voxel_size_um, depths_um=rec.depths_um, extra=extra)
-    rec.write_log(Path(f"{stem}.log.csv"))
-    rec.write_log(Path(f"{stem}.json"))
-    os.replace(tmp, out)  # the volume appears only when complete
+    io.write_tiff(outset.staged("volume"), vol, voxel_size_um=rec.voxel_size_um, depths_um=rec.depths_um,
+                  extra=extra)
+    rec.write_log(outset.staged("log"), fmt="csv")
+    rec.write_log(outset.staged("record"), fmt="json", extra={"output": out.name})
+    outset.publish()   # the old sidecars, then the volume, then the new sidecars: never two runs mixed
+    return vol
+
+
+def _report(out, outset, rec, how, vol):
     last = rec.log[-1]
     if rec.voxel_size_um:
         scale = "voxel {:g} x {:g} x {:g} um (z, y, x; {})".format(*rec.voxel_size_um, how)
@@ -210,8 +233,7 @@ def command(args) -> int:
                 f"NOT converged: stopped at --max-iter, relative residuals {last['primal_rel']:.1e} / "
                 f"{last['dual_rel']:.1e} against tol {info['tol']:g}")
     print(f"{out}: {vol.shape} {vol.dtype} volume, {scale}; {rec.iterations} iterations, {how_stop}; "
-          f"l1 {info['l1']:.3g}, tv {info['tv']:.3g} ({info['l1'] / info['noise_x'] if info['noise_x'] else 0:.3g} x the volume-domain noise level {info['noise_x']:.3g}; "
+          f"l1 {info['l1']:.3g}, tv {info['tv']:.3g} (volume-domain noise level {info['noise_x']:.3g}; "
           f"measurement noise {info['noise_sigma']:.3g} of max y); "
           f"objective {last['objective']:.4e}, {last['seconds']:.1f} s on {info['device']}; "
-          f"log: {stem}.log.csv, {stem}.json")
-    return 0
+          f"log: {outset.sidecars['log'].name}, {outset.sidecars['record'].name}")

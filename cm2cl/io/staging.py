@@ -31,8 +31,10 @@ def jsonable(obj):
     return obj
 
 
-def check_output_dir(outdir) -> Path:
-    """The parent of an output folder, created if needed; an InputError if ``outdir`` is a file."""
+def check_output_dir(outdir, record_name: str | None = None) -> Path:
+    """The parent of an output folder, created if needed, checked before any work: an InputError if
+    ``outdir`` is a file, its parent is not writable, or it is a non-empty folder that is not a previous
+    output of the same command (no ``record_name`` in it)."""
     out = Path(outdir)
     if out.exists() and not out.is_dir():
         raise InputError(f"output '{out}': exists and is not a directory")
@@ -41,43 +43,72 @@ def check_output_dir(outdir) -> Path:
         parent.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise InputError(f"output '{out}': cannot create its parent directory ({exc})") from exc
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise InputError(f"output '{out}': folder '{parent}' is not writable")
+    if record_name and out.is_dir() and any(out.iterdir()) and not (out / record_name).exists():
+        raise InputError(f"output '{out}': a non-empty folder that is not a previous output of this "
+                         f"command (no {record_name}); not replaced: choose a new or empty folder")
     return parent
 
 
-class StagedOutput:
-    """Build a folder of outputs beside ``outdir`` and move it in only when complete.
+def alive(pid: int) -> bool:
+    """Whether process ``pid`` still runs (its staged files are not stale)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
 
-    ``with StagedOutput(outdir) as stage:`` gives ``stage.dir`` (a temporary folder next to
-    ``outdir``) to write into; ``stage.publish(names, record_name, text)`` then moves ``names`` into
-    ``outdir`` and writes the JSON record ``record_name`` last, so an interrupted run never leaves a
-    folder that looks complete. The temporary folder is removed in any case.
+
+class StagedOutput:
+    """Build a folder of outputs beside ``outdir`` and publish it whole when complete.
+
+    ``with StagedOutput(outdir, record_name) as stage:`` gives ``stage.dir`` (a temporary folder next to
+    ``outdir``) to write into; ``stage.publish(names, record_name, text)`` writes the JSON record into it
+    and swaps it in for ``outdir``: the previous folder is renamed aside, the new one renamed into place,
+    then the previous one removed. A reader or an interrupted run never finds new files beside old ones;
+    a previous complete result is replaced only by a complete one. An existing non-empty ``outdir`` is
+    accepted only when it holds ``record_name`` (it is a previous output of the same command), checked
+    before any work; other folders are refused, not replaced. Staging folders left by killed runs are
+    removed by the next run on the same output.
     """
 
-    def __init__(self, outdir):
+    def __init__(self, outdir, record_name: str | None = None):
         import tempfile
 
         self.out = Path(outdir)
-        parent = check_output_dir(self.out)
-        self.dir = Path(tempfile.mkdtemp(prefix=f".{self.out.name}.partial-", dir=parent))
+        parent = check_output_dir(self.out, record_name)
+        for old in parent.glob(f".{self.out.name}.old-*"):
+            pid = old.name.rsplit("-", 1)[-1]
+            if pid.isdigit() and not alive(int(pid)):
+                if not self.out.exists():
+                    os.replace(old, self.out)   # a run killed mid-swap: the previous result comes back
+                else:
+                    shutil.rmtree(old, ignore_errors=True)
+        for stale in parent.glob(f".{self.out.name}.partial-*"):
+            pid = stale.name.rsplit("-", 2)[-2] if stale.name.count("-") >= 2 else ""
+            if pid.isdigit() and not alive(int(pid)):
+                shutil.rmtree(stale, ignore_errors=True)
+        self.dir = Path(tempfile.mkdtemp(prefix=f".{self.out.name}.partial-{os.getpid()}-", dir=parent))
         umask = os.umask(0)
         os.umask(umask)
         os.chmod(self.dir, 0o777 & ~umask)  # mkdtemp makes it private; the result is a normal folder
 
     def publish(self, names, record_name: str, text: str):
         out, tmp = self.out, self.dir
+        (tmp / record_name).write_text(text)
         if not out.exists():
-            (tmp / record_name).write_text(text)
             os.replace(tmp, out)
             return
-        stale = out / record_name
-        if stale.exists():
-            stale.unlink()  # the folder no longer looks complete while its files are replaced
-        for n in names:
-            if (out / n).is_dir():
-                shutil.rmtree(out / n)
-            os.replace(tmp / n, out / n)
-        (out / f"{record_name}.partial").write_text(text)
-        os.replace(out / f"{record_name}.partial", out / record_name)
+        old = out.with_name(f".{out.name}.old-{os.getpid()}")
+        os.replace(out, old)          # from here the target is absent, never mixed
+        from .publish import fault_point
+
+        fault_point("swap.old_moved_aside")
+        os.replace(tmp, out)
+        shutil.rmtree(old, ignore_errors=True)
 
     def __enter__(self):
         return self

@@ -206,6 +206,11 @@ def read_tiff(path):
     if ome:
         try:
             vs, depths, record = _ome_geometry(ome, arr.ndim)
+            shape = tuple((record or {}).get("shape") or ())
+            if shape and arr.shape != shape and int(np.prod(shape)) == arr.size:
+                # tifffile drops axes of length 1 (one plane, one-pixel-wide volumes): restore them
+                arr = arr.reshape(shape)
+                vs, depths, record = _ome_geometry(ome, arr.ndim)
         except ET.ParseError as exc:
             raise InputError(f"'{path}': its OME-XML is not readable ({exc})") from exc
         extra = (record or {}).get("extra") or {}

@@ -19,11 +19,9 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
+from ..io.publish import exclusive_lock, fault_point
 
 DONE = ".cm2cl-done"
-#: fault injection for tests: CM2CL_FAULT=after_chunk.N kills the process (SIGKILL) after frame N's chunk
-#: is written and before it is marked done
-FAULT_ENV = "CM2CL_FAULT"
 LOCK = ".cm2cl-lock"
 
 
@@ -35,13 +33,6 @@ def ngff_multiscales(name: str, voxel_size_um, ndim: int = 4) -> list[dict]:
     scale = [1.0] + ([float(v) for v in voxel_size_um] if voxel_size_um else [1.0, 1.0, 1.0])
     return [{"version": "0.4", "name": name, "axes": axes[-ndim:],
              "datasets": [{"path": "0", "coordinateTransformations": [{"type": "scale", "scale": scale[-ndim:]}]}]}]
-
-
-def _fault_point(name: str) -> None:
-    if os.environ.get(FAULT_ENV) == name:
-        import signal
-
-        os.kill(os.getpid(), signal.SIGKILL)
 
 
 class FrameStore:
@@ -84,8 +75,6 @@ class FrameStore:
 
     @classmethod
     def _reopen(cls, path: Path, fingerprint: str, shape) -> "FrameStore":
-        import fcntl
-
         import zarr
 
         try:
@@ -101,13 +90,8 @@ class FrameStore:
         arr = g["0"]
         if tuple(arr.shape) != tuple(shape):
             raise InputError(f"--output '{path}': holds an array of shape {tuple(arr.shape)}, this job needs {shape}")
-        fd = os.open(path / LOCK, os.O_RDWR | os.O_CREAT, 0o644)
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError as exc:
-            os.close(fd)
-            raise InputError(f"--output '{path}': another run is writing this store; wait for it or choose "
-                             "another output") from exc
+        fd = exclusive_lock(path / LOCK, f"--output '{path}': another run is writing this store; wait for it "
+                                         "or choose another output")
         return cls(path, arr, fd)
 
     @property
@@ -127,7 +111,7 @@ class FrameStore:
         import threading
 
         self.array[int(i)] = np.asarray(volume, self.array.dtype)
-        _fault_point(f"after_chunk.{int(i)}")
+        fault_point(f"after_chunk.{int(i)}")   # tests: kill -9 between chunk and mark
         d = self.path / DONE
         tmp = d / f".{int(i):08d}.{os.getpid()}.{threading.get_ident()}"
         tmp.write_text(json.dumps(info or {}))

@@ -278,13 +278,13 @@ def simulate(scene, outdir, seed: int | None = None, device=None) -> dict:
     JSON record last, so an interrupted run never leaves output that looks complete.
     Returns the record (as written to simulation.json)."""
     scene = load_scene(scene)
-    check_output_dir(outdir)  # before the (long) run
+    check_output_dir(outdir, "simulation.json")  # before the (long) run
     return write_simulation(simulate_scene(scene, seed, device), outdir)
 
 
 def write_simulation(result: SimulationResult, outdir) -> dict:
     """Write a :class:`SimulationResult` into ``outdir`` as :func:`simulate` does; returns the record."""
-    with StagedOutput(outdir) as stage:
+    with StagedOutput(outdir, "simulation.json") as stage:
         files = _write_outputs(result, result.scene, stage.dir)
         record = dict(result.record)
         record["files"] = files

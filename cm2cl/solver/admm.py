@@ -153,6 +153,21 @@ class ADMMSolver:
         self._plan2d.inverse(self.S.slabs[0], self.hx.slabs[0])
 
     # ---- one reconstruction -----------------------------------------------------------------
+    def _check_range(self, scale: float, lo: float, hi: float) -> None:
+        """Refuse a volume the solve's dtype cannot hold: the normalised iterate (values ``lo``..``hi``)
+        times ``scale`` (the caller's units) above the dtype's maximum, or all of it below its smallest
+        subnormal (it would read as zeros). Checked with wide margins before the solve, exactly after."""
+        if hi <= 0:
+            return
+        fi = np.finfo(self.dtype)
+        if scale * hi > float(fi.max):
+            raise InputError(f"volume: values up to {scale * hi:.3g} (measurement / PSF scale) exceed what "
+                             f"{self.dtype.name} can hold ({float(fi.max):.3g}); use dtype float64 or rescale the input")
+        if scale * lo < float(fi.smallest_subnormal):
+            raise InputError(f"volume: values of {scale * lo:.3g} (measurement / PSF scale) are below what "
+                             f"{self.dtype.name} can hold ({float(fi.smallest_subnormal):.3g}) and would read as "
+                             "zeros; use dtype float64 or rescale the input")
+
     def solve(self, y, callback=None, callback_every=1) -> Reconstruction:
         y = validate.real_array(y, "measurement", ndims=(2,))
         if y.shape != self.M:
@@ -160,6 +175,7 @@ class ADMMSolver:
         ymax = float(np.max(np.abs(y)))
         # an all-zero frame (a dark frame of a series) is legal: its answer is x = 0, reached at once
         y_scale = 1.0 / ymax if self.p.normalize and ymax > 0 else 1.0
+        self._check_range(self.psf_scale / y_scale, 1e6, 1e-6)   # refuses only what must fail
         y_n = np.asarray(y, np.float64) * y_scale   # normalised in float64 before the device sees it
 
         p, m, rt, q, R = self.p, self.model, self.rt, self.rt.queue, self.dtype.type
@@ -240,7 +256,9 @@ class ADMMSolver:
                  rt.caps.name, len(ctl.log), "converged" if ctl.converged else "stopped at max_iter",
                  last["primal_rel"], last["dual_rel"], last["rel_change"], last["seconds"])
         x = self.x.get()
-        vol = np.maximum(x, 0) * self.dtype.type(self.psf_scale / y_scale)  # stays in the solve's dtype
+        x = np.maximum(x, 0)
+        self._check_range(self.psf_scale / y_scale, float(x.max()), float(x.max()))
+        vol = (x * (self.psf_scale / y_scale)).astype(self.dtype)  # scaled in float64, the solve's dtype
         return Reconstruction(
             volume_padded=vol, crop=m.crop, log=ctl.log,
             scaling={"psf_scale": float(self.psf_scale), "y_scale": float(y_scale)},

@@ -56,16 +56,18 @@ class Reconstruction:
     def log_array(self, name: str) -> np.ndarray:
         return np.array([row[name] for row in self.log], dtype=float)
 
-    def write_log(self, path) -> Path:
-        """Write the iteration log as CSV (``.csv``) or JSON (anything else, with the metadata)."""
+    def write_log(self, path, fmt: str | None = None, extra: dict | None = None) -> Path:
+        """Write the iteration log as CSV (``fmt='csv'``, or a ``.csv`` path) or JSON (with the metadata,
+        and ``extra`` keys at the top)."""
         path = Path(path)
-        if path.suffix.lower() == ".csv":
+        if (fmt or ("csv" if path.suffix.lower() == ".csv" else "json")) == "csv":
             with path.open("w", newline="") as f:
                 w = csv.DictWriter(f, fieldnames=LOG_FIELDS)
                 w.writeheader()
                 for row in self.log:
                     w.writerow({k: row[k] for k in LOG_FIELDS})
         else:
-            doc = {"params": self.params, "scaling": self.scaling, "info": self.info, "log": self.log}
+            doc = {**(extra or {}), "params": self.params, "scaling": self.scaling, "info": self.info,
+                   "log": self.log}
             path.write_text(json.dumps(doc, indent=1, default=float))
         return path
