@@ -73,7 +73,7 @@ def main(argv=None):
     lines += ["", "The scene is a resolution target tilted in depth: it should show bar groups in XY and a diagonal "
               "streak across the planes in XZ. The long run is the optimum of the same problem (same weights), so "
               "where the two images agree, what they show is the problem's (weights, preprocessing, model), not "
-              "a lack of convergence.", "", "![defaults](img/dc3d_default_mip.png)", "", "![long float64](img/dc3d_long_float64_mip.png)", ""]
+              "a lack of convergence. The data carries no physical scale: the MIP axes read um but are pixels and plane indices.", "", "![defaults](img/dc3d_default_mip.png)", "", "![long float64](img/dc3d_long_float64_mip.png)", ""]
     (DOCS / "diffusercam3d.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
     return od, ol
