@@ -103,3 +103,23 @@ def test_python_310_gets_a_toml_parser():
     assert not top, "an unconditional `import tomllib` breaks Python 3.10"
     guarded = [n for n in tree.body if isinstance(n, ast.If) and "version_info" in ast.unparse(n.test)]
     assert guarded and "tomli" in ast.unparse(guarded[0])
+
+
+@pytest.mark.parametrize("kw, msg", [
+    (dict(padded_shape=(128, 192, 2)), "padded_shape: expected two positive integers"),
+    (dict(padded_shape=(64, "a")), "padded_shape: expected two positive integers"),
+    (dict(padded_shape=7), "padded_shape: expected two positive integers"),
+    (dict(max_slab_planes=-1), "max_slab_planes: expected an integer >= 1"),
+    (dict(max_slab_planes=0), "max_slab_planes: expected an integer >= 1"),
+    (dict(max_slab_planes=2.5), "max_slab_planes: expected an integer >= 1"),
+    (dict(tv_iters=100000), "tv_iters: must be <= 1000"),
+])
+def test_out_of_range_api_arguments_are_refused(rt, kw, msg):
+    """Issue 8 item 16: a bad padded_shape gave a ValueError traceback; max_slab_planes=-1 made empty slabs,
+    read an uninitialised buffer and reported "diverged"."""
+    from cm2cl.errors import InputError
+    from test_admm import bead_problem
+
+    psf, _, y = bead_problem(7)
+    with pytest.raises(InputError, match=msg):
+        cm2cl.reconstruct(y, psf, max_iter=2, **kw)

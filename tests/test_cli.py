@@ -25,7 +25,7 @@ def _files(tmp_path):
 def test_reconstruct_writes_volume_and_log(rt, tmp_path, capsys):
     meas, psf = _files(tmp_path)
     out = tmp_path / "vol.tif"
-    assert main(["reconstruct", str(meas), "--psf", str(psf), "-o", str(out), "--offset", "100",
+    assert main(["reconstruct", str(meas), "--psf", str(psf), "-o", str(out), "--offset", "100", "--psf-offset", "100",
                  "--max-iter", "40", "--quiet"]) == 0
     vol, meta = io.read_tiff(out)
     assert vol.shape == (4, 32, 40) and vol.dtype == np.float32 and vol.min() >= 0 and vol.max() > 0
@@ -45,6 +45,8 @@ def test_reconstruct_bad_input_writes_nothing(rt, tmp_path, capsys):
         (["reconstruct", str(meas), "--psf", str(psf), "--tv", "-1"], "tv: must be >= 0, got -1.0"),
         (["reconstruct", str(tmp_path / "nope.tif"), "--psf", str(psf)], "no such file"),
         (["reconstruct", str(meas), "--psf", str(psf), "--offset", "dark"], "--offset: expected"),
+        (["reconstruct", str(meas), "--psf", str(psf), "--offset", "nan"], "--offset: expected a finite number"),
+        (["reconstruct", str(meas), "--psf", str(psf), "--psf-offset", "inf"], "--psf-offset: expected a finite"),
     ]
     for argv, msg in cases:
         out = tmp_path / "out.tif"
@@ -86,7 +88,7 @@ def test_reconstruct_labels_the_volume_with_the_ground_truths_object_space_scale
 def test_reconstruct_without_an_object_space_psf_labels_pixels_or_the_given_voxel(rt, tmp_path, capsys):
     meas, psf = _files(tmp_path)           # plain TIFFs without scale, like a DiffuserCam PSF
     out = tmp_path / "px.ome.tif"
-    assert main(["reconstruct", str(meas), "--psf", str(psf), "-o", str(out), "--offset", "100",
+    assert main(["reconstruct", str(meas), "--psf", str(psf), "-o", str(out), "--offset", "100", "--psf-offset", "100",
                  "--max-iter", "2", "--quiet"]) == 0
     assert ome_scale(out) == ((None, None, None), []) and resolution_um(out) is None
     assert "unit pixel" in capsys.readouterr().out
@@ -94,11 +96,11 @@ def test_reconstruct_without_an_object_space_psf_labels_pixels_or_the_given_voxe
     p, _ = io.read_tiff(psf)
     io.write_tiff(tmp_path / "sensor_psf.ome.tif", p, voxel_size_um=(250.0, 17.6, 17.6), depths_um=[0, 1, 2, 3])
     assert main(["reconstruct", str(meas), "--psf", str(tmp_path / "sensor_psf.ome.tif"), "-o", str(out),
-                 "--offset", "100", "--max-iter", "2", "--quiet"]) == 0
+                 "--offset", "100", "--psf-offset", "100", "--max-iter", "2", "--quiet"]) == 0
     assert ome_scale(out) == ((None, None, None), [0, 1, 2, 3])
     assert "no object-space voxel size" in capsys.readouterr().out
     # an explicit voxel size of the PSF grid, times --bin laterally
-    assert main(["reconstruct", str(meas), "--psf", str(psf), "-o", str(out), "--offset", "100",
+    assert main(["reconstruct", str(meas), "--psf", str(psf), "-o", str(out), "--offset", "100", "--psf-offset", "100",
                  "--max-iter", "2", "--voxel-size", "100", "5", "6", "--bin", "2", "--quiet"]) == 0
     assert ome_scale(out)[0] == pytest.approx((100.0, 10.0, 12.0))
     assert resolution_um(out) == pytest.approx((10.0, 12.0), rel=1e-6)
@@ -129,7 +131,7 @@ def test_progress_is_one_tqdm_bar_on_a_terminal_only(rt, tmp_path, monkeypatch, 
         assert stream.getvalue() == ""
     # through the command: a bar on a terminal, nothing with --quiet
     meas, psf = _files(tmp_path)
-    argv = ["reconstruct", str(meas), "--psf", str(psf), "-o", str(tmp_path / "v.ome.tif"), "--offset", "100",
+    argv = ["reconstruct", str(meas), "--psf", str(psf), "-o", str(tmp_path / "v.ome.tif"), "--offset", "100", "--psf-offset", "100",
             "--max-iter", "3", "--tol", "0"]
     term = _Terminal()
     monkeypatch.setattr(sys, "stderr", term)
@@ -139,3 +141,17 @@ def test_progress_is_one_tqdm_bar_on_a_terminal_only(rt, tmp_path, monkeypatch, 
     monkeypatch.setattr(sys, "stderr", term)
     assert main(argv + ["--quiet"]) == 0
     assert term.getvalue() == ""
+
+
+def test_measurement_offset_is_not_subtracted_from_the_psf(rt, tmp_path, capsys):
+    """Issue 8 item 13: --offset 100 was subtracted from the PSF too, emptying its weak planes; the PSF has
+    its own --psf-offset."""
+    psf, _, y = bead_problem(6)
+    tifffile.imwrite(tmp_path / "psf.tif", (psf * 50).astype(np.float32), photometric="minisblack")  # max ~50
+    tifffile.imwrite(tmp_path / "meas.tif", (y * 1000 + 100).astype(np.float32))
+    out = tmp_path / "v.ome.tif"
+    argv = ["reconstruct", str(tmp_path / "meas.tif"), "--psf", str(tmp_path / "psf.tif"), "-o", str(out),
+            "--offset", "100", "--max-iter", "3", "--quiet"]
+    assert main(argv) == 0
+    assert main(argv + ["--psf-offset", "100"]) == 2      # the old behaviour, now asked for explicitly
+    assert "all zero" in capsys.readouterr().err

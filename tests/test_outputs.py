@@ -179,3 +179,25 @@ def test_simulate_refuses_a_folder_that_is_not_its_output(rt, tmp_path):
     r = _simulate(out, 1)
     assert r.returncode == 2 and "not a previous output of this command" in r.stderr
     assert [p.name for p in out.iterdir()] == ["precious.tif"]
+
+
+def test_inputs_are_checked_from_their_headers_before_decoding(rt, tmp_path, capsys, monkeypatch):
+    """Issue 8 item 14: a small compressed TIFF that decodes to a huge image was decoded (8 GB, 33 s) before
+    "shape does not match"; now shapes and the memory they need come from the headers."""
+    meas, psf = _files(tmp_path)
+    big = tmp_path / "big.tif"
+    tifffile.imwrite(big, np.zeros((6000, 6000), np.uint8), compression="zlib")
+    assert big.stat().st_size < 1e6
+    decoded = []
+    real = io.read_tiff
+    monkeypatch.setattr(io, "read_tiff", lambda p: decoded.append(p) or real(p))
+    out = tmp_path / "v.ome.tif"
+    assert main(["reconstruct", str(big), "--psf", str(psf), "-o", str(out), "--quiet"]) == 2
+    assert "does not match the PSF" in capsys.readouterr().err
+    monkeypatch.setattr("cm2cl.solver.memory.host_available_bytes", lambda: 1000)
+    assert main(["reconstruct", str(meas), "--psf", str(psf), "-o", str(out), "--quiet"]) == 2
+    assert "of host memory" in capsys.readouterr().err
+    assert decoded == [] and not out.exists()
+    monkeypatch.setattr("cm2cl.solver.memory.host_available_bytes", lambda: 1 << 40)
+    assert main(["reconstruct", str(meas), "--psf", str(psf), "-o", str(out), "--quiet", "--max-iter", "2"]) == 0
+    assert len(decoded) == 2                                   # the interception sees real reads

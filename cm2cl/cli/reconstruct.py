@@ -68,7 +68,11 @@ def register(sub):
                         "the local devices; pin each worker to a device with CM2CL_DEVICE")
     g = r.add_argument_group("input preparation")
     g.add_argument("--offset", default="none",
-                   help="camera offset to subtract: 'none', 'auto' (mean of pixels [5:15, 5:15]) or a number")
+                   help="camera offset (dark level) of the measurement to subtract: 'none', 'auto' (mean of "
+                        "pixels [5:15, 5:15]) or a number")
+    g.add_argument("--psf-offset", default="none",
+                   help="offset of the PSF stack, separately (a calibration has its own dark level): 'none', "
+                        "'auto' or a number")
     g.add_argument("--bin", type=int, default=1, help="bin measurement and PSF laterally by this factor")
     g = r.add_argument_group("output")
     g.add_argument("--padded", action="store_true",
@@ -81,15 +85,18 @@ def register(sub):
     r.set_defaults(func=command)
 
 
-def _offset(text: str):
+def _offset(text: str, option: str = "--offset"):
     if text == "none":
         return None
     if text == "auto":
         return "auto"
     try:
-        return float(text)
+        value = float(text)
     except ValueError as exc:
-        raise InputError(f"--offset: expected 'none', 'auto' or a number, got {text!r}") from exc
+        raise InputError(f"{option}: expected 'none', 'auto' or a number, got {text!r}") from exc
+    if not np.isfinite(value):
+        raise InputError(f"{option}: expected a finite number, got {text!r}")
+    return value
 
 
 class Progress:
@@ -162,6 +169,7 @@ def command(args) -> int:
     for src in (args.measurement, args.psf):
         if Path(src).exists() and out.resolve() == Path(src).resolve():
             raise InputError(f"--output '{out}': would overwrite the input '{src}'")
+    _check_headers(args)      # shapes and sizes from the TIFF headers, before decoding anything
     meas, _ = io.read_tiff(args.measurement)
     psf, pmeta = io.read_tiff(args.psf)
     if meas.ndim != 2:
@@ -169,9 +177,9 @@ def command(args) -> int:
     if psf.ndim not in (2, 3):
         raise InputError(f"psf '{args.psf}': expected a (nz, My, Mx) stack, got shape {psf.shape}")
     vs, depths, how = _volume_geometry(args, pmeta, args.bin)
-    off = _offset(args.offset)
+    off, psf_off = _offset(args.offset), _offset(args.psf_offset, "--psf-offset")
     y = prepare(meas, offset=off, bin_factor=args.bin, name=f"measurement '{args.measurement}'")
-    h = prepare(psf, offset=off, bin_factor=args.bin, name=f"psf '{args.psf}'")
+    h = prepare(psf, offset=psf_off, bin_factor=args.bin, name=f"psf '{args.psf}'")
     h = h[None] if h.ndim == 2 else h
     if y.shape != h.shape[1:]:
         raise InputError(f"measurement '{args.measurement}': shape {y.shape} does not match the PSF "
@@ -204,6 +212,36 @@ def command(args) -> int:
         raise InputError(f"--output '{out}': writing failed ({exc.strerror or exc}); nothing was written") from exc
     _report(out, outset, rec, how, vol)
     return 0
+
+
+def _check_headers(args) -> None:
+    """Refuse, from the headers alone, inputs of the wrong shape and problems that cannot fit: the
+    host memory to decode them (float64) and the device memory of the solve."""
+    from .. import io
+    from ..device import get_runtime
+    from ..device.fft import resolve_backend
+    from ..solver.forward import choose_padded_shape
+    from ..solver.memory import check_fits, host_available_bytes
+
+    (ms, mdt), (ps, pdt) = io.peek_tiff(args.measurement), io.peek_tiff(args.psf)
+    if len(ms) != 2:
+        raise InputError(f"measurement '{args.measurement}': expected a 2D image, got shape {ms}")
+    if len(ps) not in (2, 3):
+        raise InputError(f"psf '{args.psf}': expected a (nz, My, Mx) stack, got shape {ps}")
+    if ms != ps[-2:]:
+        raise InputError(f"measurement '{args.measurement}': shape {ms} does not match the PSF '{args.psf}' "
+                         f"sensor grid {ps[-2:]}")
+    need = 8 * (int(np.prod(ms)) + int(np.prod(ps))) * 2      # decoded as float64, plus a prepared copy
+    have = host_available_bytes()
+    if have and need > have:
+        raise InputError(f"measurement '{args.measurement}' and psf '{args.psf}': decoding them needs "
+                         f"{need / 2**30:.1f} GiB of host memory, {have / 2**30:.1f} GiB available")
+    rt = get_runtime(args.device)
+    dt = rt.check_dtype(np.dtype(args.dtype))
+    backend = resolve_backend(args.backend, rt)
+    sensor = tuple(n // args.bin for n in ms)
+    nz = ps[0] if len(ps) == 3 else 1
+    check_fits(rt, nz, choose_padded_shape(sensor, backend), dt, backend)
 
 
 def _write(args, out, outset, rec, dt, how):

@@ -58,8 +58,8 @@ def command(args) -> int:
     psf, pmeta = io.read_tiff(args.psf)
     if psf.ndim not in (2, 3):
         raise InputError(f"psf '{args.psf}': expected a (nz, My, Mx) stack, got shape {psf.shape}")
-    off = _offset(args.offset)
-    h = prepare(psf, offset=off, bin_factor=args.bin, name=f"psf '{args.psf}'")
+    off, psf_off = _offset(args.offset), _offset(args.psf_offset, "--psf-offset")
+    h = prepare(psf, offset=psf_off, bin_factor=args.bin, name=f"psf '{args.psf}'")
     h = h[None] if h.ndim == 2 else h
     sensor = tuple(n // args.bin for n in series.shape)
     if sensor != h.shape[1:]:
@@ -82,7 +82,7 @@ def command(args) -> int:
     if dt == np.float64 and not args.scheduler:
         for d in devices:
             get_runtime(d).check_dtype(dt)
-    prep = {"offset": off, "bin": args.bin}
+    prep = {"offset": off, "psf_offset": psf_off, "bin": args.bin}
     key = fingerprint(h, params, series, dt, args.backend, prep)
     shape = (h.shape[0],) + sensor
     record = {"what": "cm2cl reconstruction series", "psf": str(args.psf), "params": params.as_dict(),

@@ -4,4 +4,4 @@ binning; :mod:`.prepare`)."""
 
 from .prepare import bin_image, estimate_offset, prepare, subtract_offset  # noqa: F401
 from .staging import StagedOutput, check_output_dir, jsonable  # noqa: F401
-from .tiff import OBJECT_SPACE, read_tiff, tiff_stem, write_tiff  # noqa: F401
+from .tiff import OBJECT_SPACE, peek_tiff, read_tiff, tiff_stem, write_tiff  # noqa: F401

@@ -173,6 +173,26 @@ def _ome_geometry(xml_text: str, ndim: int):
     return vs, depths, record
 
 
+def peek_tiff(path) -> tuple[tuple, np.dtype]:
+    """(shape, dtype) of a TIFF's first series from its headers, without decoding any pixel: lets a
+    command refuse a wrong or huge input before reading it. Axes of length 1 are dropped, as
+    :func:`read_tiff` drops them for files without a cm2cl record."""
+    import tifffile
+
+    path = Path(path)
+    if not path.exists():
+        raise InputError(f"'{path}': no such file")
+    if path.is_dir():
+        raise InputError(f"'{path}': is a directory, expected a TIFF file")
+    try:
+        with tifffile.TiffFile(path) as tf:
+            s = tf.series[0]
+            shape, dtype = tuple(int(n) for n in s.shape), np.dtype(s.dtype)
+    except (tifffile.TiffFileError, ValueError, OSError, IndexError) as exc:
+        raise InputError(f"'{path}': not a readable TIFF file ({exc})") from exc
+    return tuple(n for n in shape if n != 1) or (1,), dtype
+
+
 def read_tiff(path):
     """Read a TIFF written by :func:`write_tiff`, an ImageJ hyperstack, or any other TIFF.
 

@@ -39,6 +39,18 @@ log = logging.getLogger(__name__)
 #: 1.1-1.6x; GPUs keep hundreds of work-groups at this size for a few million voxels)
 PER_ITEM = 64
 
+def _padded_arg(padded_shape) -> tuple[int, int]:
+    """``padded_shape`` as two positive integers, or an InputError naming it."""
+    try:
+        P = tuple(padded_shape)
+        ok = len(P) == 2 and all(isinstance(n, (int, np.integer)) and not isinstance(n, bool) and n > 0 for n in P)
+    except TypeError:
+        ok = False
+    if not ok:
+        raise InputError(f"padded_shape: expected two positive integers (Py, Px), got {padded_shape!r}")
+    return int(P[0]), int(P[1])
+
+
 class ADMMSolver:
     """Device state of one reconstruction problem (PSF stack + parameters)."""
 
@@ -57,7 +69,11 @@ class ADMMSolver:
         self.dtype = rt.check_dtype(dtype)
         self.backend = resolve_backend(backend, rt)
         sensor = psf.shape[1:]
-        P = tuple(padded_shape) if padded_shape is not None else choose_padded_shape(sensor, self.backend)
+        P = _padded_arg(padded_shape) if padded_shape is not None else choose_padded_shape(sensor, self.backend)
+        if max_slab_planes is not None and (isinstance(max_slab_planes, bool)
+                                            or not isinstance(max_slab_planes, (int, np.integer))
+                                            or max_slab_planes < 1):
+            raise InputError(f"max_slab_planes: expected an integer >= 1 or None, got {max_slab_planes!r}")
         if any(p < n for p, n in zip(P, min_padded_shape(sensor))):
             raise InputError(f"padded_shape: {P} is smaller than 2*sensor-1 = {min_padded_shape(sensor)}")
         self.memory = check_fits(rt, psf.shape[0], P, self.dtype, self.backend)
