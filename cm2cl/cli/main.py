@@ -8,10 +8,17 @@ import sys
 from ..errors import CM2Error
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with cm2cl's one-line errors (no usage block): ``cm2cl reconstruct: error: ...``, exit 2."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="cm2cl", description=__doc__)
+    p = _Parser(prog="cm2cl", description=__doc__)
     p.add_argument("--version", action="version", version=f"cm2cl {__import__('cm2cl').__version__}")
-    sub = p.add_subparsers(dest="command", metavar="COMMAND")
+    sub = p.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     for register in _registrars():
         register(sub)
     return p

@@ -169,6 +169,8 @@ def command(args) -> int:
     for src in (args.measurement, args.psf):
         if Path(src).exists() and out.resolve() == Path(src).resolve():
             raise InputError(f"--output '{out}': would overwrite the input '{src}'")
+    if args.bin < 1:
+        raise InputError(f"--bin: must be an integer >= 1, got {args.bin}")
     _check_headers(args)      # shapes and sizes from the TIFF headers, before decoding anything
     meas, _ = io.read_tiff(args.measurement)
     psf, pmeta = io.read_tiff(args.psf)
@@ -228,6 +230,8 @@ def _check_headers(args) -> None:
         raise InputError(f"measurement '{args.measurement}': expected a 2D image, got shape {ms}")
     if len(ps) not in (2, 3):
         raise InputError(f"psf '{args.psf}': expected a (nz, My, Mx) stack, got shape {ps}")
+    if min(ms) < args.bin:
+        raise InputError(f"measurement '{args.measurement}': shape {ms} is smaller than the bin factor {args.bin}")
     if ms != ps[-2:]:
         raise InputError(f"measurement '{args.measurement}': shape {ms} does not match the PSF '{args.psf}' "
                          f"sensor grid {ps[-2:]}")

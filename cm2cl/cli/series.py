@@ -54,6 +54,8 @@ def command(args) -> int:
     from .reconstruct import _offset, _volume_geometry
 
     out = Path(args.output)
+    if args.bin < 1:
+        raise InputError(f"--bin: must be an integer >= 1, got {args.bin}")
     series = FrameSeries(args.measurement)                      # headers only: shapes checked first
     psf, pmeta = io.read_tiff(args.psf)
     if psf.ndim not in (2, 3):
