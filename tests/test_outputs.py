@@ -201,3 +201,38 @@ def test_inputs_are_checked_from_their_headers_before_decoding(rt, tmp_path, cap
     monkeypatch.setattr("cm2cl.solver.memory.host_available_bytes", lambda: 1 << 40)
     assert main(["reconstruct", str(meas), "--psf", str(psf), "-o", str(out), "--quiet", "--max-iter", "2"]) == 0
     assert len(decoded) == 2                                   # the interception sees real reads
+
+
+@pytest.mark.parametrize("key, value, msg", [
+    ("count", 1e8, "objects; at most .* can be generated"),
+    ("diameter_um", 1e9, "is larger than the volume"),
+    ("dz_um", 1e-9, "planes; at most 100000"),
+])
+def test_scenes_beyond_the_machine_are_refused_before_generating(tmp_path, key, value, msg):
+    """Issue 8 item 15: count = 1e8, diameter_um = 1e9, dz_um = 1e-9 took 15.8 GB and ended in MemoryError
+    or ValueError tracebacks with staging files left; now the scene is refused when it is read."""
+    from cm2cl import simulate
+    from cm2cl.errors import InputError
+
+    s = simulate.load_scene("demo_beads").as_dict()
+    s.pop("source", None)
+    if key == "dz_um":
+        s["volume"]["dz_um"] = value
+    else:
+        s["objects"][0][key] = value
+    with pytest.raises(InputError, match=msg):
+        simulate.simulate_scene(s)
+
+
+def test_simulate_cli_refuses_a_huge_scene_and_leaves_nothing(tmp_path):
+    from pathlib import Path
+
+    import cm2cl.simulate
+
+    text = (Path(cm2cl.simulate.__file__).parent / "scenes" / "demo_beads.toml").read_text()
+    assert "count = 12" in text
+    (tmp_path / "huge.toml").write_text(text.replace("count = 12", "count = 100000000"))
+    r = subprocess.run([sys.executable, "-m", "cm2cl", "simulate", str(tmp_path / "huge.toml"), "-o",
+                        str(tmp_path / "sim")], capture_output=True, text=True)
+    assert r.returncode == 2 and "can be generated" in r.stderr and len(r.stderr.strip().splitlines()) == 1
+    assert [p.name for p in tmp_path.iterdir()] == ["huge.toml"]

@@ -116,6 +116,28 @@ class Scene:
 # built-in scenes
 # --------------------------------------------------------------------------------------------
 
+
+#: resource bounds a scene is checked against before anything is generated (the renderer's memory is
+#: estimated separately from the planes and the grid, against the host's available memory)
+MAX_PLANES = 100_000
+MAX_OBJECTS = 2_000_000
+
+
+def _check_object_size(ck, key, params, box) -> None:
+    """Refuse object counts and sizes that cannot be generated on this machine, before generating."""
+    vol_mm3 = box.size_mm[0] * box.size_mm[1] * max(box.z_range_um[1] - box.z_range_um[0], 1.0) / 1000.0
+    n = params.get("count")
+    if n is None and params.get("density_per_mm3") is not None:
+        n = params["density_per_mm3"] * vol_mm3
+    if n is not None and n > MAX_OBJECTS:
+        ck.fail(key, f"{n:.3g} objects; at most {MAX_OBJECTS:g} can be generated (lower count or density_per_mm3)")
+    d = params.get("diameter_um")
+    extent_um = 1000.0 * max(box.size_mm[0], box.size_mm[1]) + (box.z_range_um[1] - box.z_range_um[0])
+    if d is not None and d > extent_um:
+        ck.fail(f"{key}.diameter_um", f"{d:g} um is larger than the volume ({extent_um:g} um)")
+    if n is not None and d is not None and n * (d / 1000.0) ** 3 > 1e3 * vol_mm3:
+        ck.fail(key, f"{n:.3g} objects of {d:g} um fill the volume many times over")
+
 def builtin_scenes() -> dict:
     """{name: path} of the scenes shipped in cm2cl/simulate/scenes/."""
     root = resources.files("cm2cl.simulate.scenes")
@@ -222,6 +244,9 @@ def _build(data: dict, source: str) -> Scene:
     dz = vol["dz_um"] if vol["dz_um"] is not None else 1.0
     if sz > 0 and dz > 1000.0 * sz:
         ck.fail("volume.dz_um", f"{dz} um exceeds the depth extent {1000.0 * sz:g} um")
+    if sz > 0 and 1000.0 * sz / dz > MAX_PLANES:
+        ck.fail("volume.dz_um", f"{dz:g} um over a {1000.0 * sz:g} um depth makes {1000.0 * sz / dz:.3g} planes; "
+                                f"at most {MAX_PLANES} (raise dz_um)")
     box = Box((cx, cy), (sx, sy), (1000.0 * (cz - sz / 2.0), 1000.0 * (cz + sz / 2.0)))
     if -box.z_range_um[0] >= 1000.0 * optics.l_mm:
         ck.fail("volume.center_mm", "the volume reaches the microlens array (z <= -l)")
@@ -239,6 +264,7 @@ def _build(data: dict, source: str) -> Scene:
             given = [g for g in group if params.get(g) is not None]
             if len(given) != 1:
                 ck.fail(key, f"give exactly one of {', '.join(group)} (got {', '.join(given) or 'none'})")
+        _check_object_size(ck, key, params, box)
         objects.append({"type": kind, **params})
     if not objects:
         ck.fail("objects", "the scene has no objects")
