@@ -58,30 +58,30 @@ __kernel void update_w(__global const real_t *x, __global const real_t *x_next, 
  * Reduces into slots slot0 + (0..5): ||hx - v'||^2, ||v' - v||^2, ||C hx - y||^2, ||hx||^2, ||v'||^2,
  * ||xi'||^2. */
 __kernel void update_v(__global real_t *v, __global real_t *xi, __global const real_t *hx,
-                       __global const real_t *cty, const real_t mu_v,
-                       const int py, const int px, const int my, const int mx,
-                       const int oy, const int ox,
+                       __global const real_t *cty, __global const real_t *cw, const real_t mu_v,
+                       const int py, const int px,
                        __global real_t *partials, const int pstride, __local real_t *scratch, const int slot0,
                        const int per_item, const int contiguous) {
+    /* cty: the measurement embedded in the padded grid; cw: each pixel's weight in the data term (1 on
+       the sensor, 0 outside it and on masked pixels): v = (cw y + mu_v Hx + xi) / (cw + mu_v) */
     const size_t n = (size_t)py * px;
     real_t a0 = 0, a1 = 0, a2 = 0, a3 = 0, a4 = 0, a5 = 0;
     size_t i0, i1, di;
     reduction_range(n, per_item, contiguous, &i0, &i1, &di);
     for (size_t i = i0; i < i1; i += di) {
-        const int r = (int)(i / (size_t)px), c = (int)(i % (size_t)px);
-        const int inside = (r >= oy && r < oy + my && c >= ox && c < ox + mx);
-        const real_t h = hx[i];
-        const real_t vn = (cty[i] + mu_v * h + xi[i]) / ((inside ? (real_t)1 : (real_t)0) + mu_v);
+        const real_t h = hx[i], m = cw[i];
+        const real_t vn = (m * cty[i] + mu_v * h + xi[i]) / (m + mu_v);
         const real_t pv = h - vn, dv = vn - v[i];
         const real_t xn = xi[i] + mu_v * pv;
+        const real_t d = h - cty[i];
         xi[i] = xn;
         v[i] = vn;
+        a2 += m * d * d;
         a0 += pv * pv;
         a1 += dv * dv;
         a3 += h * h;
         a4 += vn * vn;
         a5 += xn * xn;
-        if (inside) { const real_t d = h - cty[i]; a2 += d * d; }
     }
     reduce_to(partials, pstride, scratch, a0, slot0 + 0);
     reduce_to(partials, pstride, scratch, a1, slot0 + 1);

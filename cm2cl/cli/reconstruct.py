@@ -74,6 +74,11 @@ def register(sub):
                    help="offset of the PSF stack, separately (a calibration has its own dark level): 'none', "
                         "'auto' or a number")
     g.add_argument("--bin", type=int, default=1, help="bin measurement and PSF laterally by this factor")
+    g.add_argument("--mask", default=None,
+                   help="comma-separated pixels to leave out of the data term: 'saturated' (at the bit depth's "
+                        "maximum, or --saturation), 'hot' (isolated outliers); they are always counted and reported")
+    g.add_argument("--saturation", type=float, default=None,
+                   help="saturation level of the measurement (default: the integer dtype's maximum)")
     g = r.add_argument_group("output")
     g.add_argument("--padded", action="store_true",
                    help="write the whole padded grid (emitters outside the field of view) instead of the FOV")
@@ -171,6 +176,12 @@ def command(args) -> int:
             raise InputError(f"--output '{out}': would overwrite the input '{src}'")
     if args.bin < 1:
         raise InputError(f"--bin: must be an integer >= 1, got {args.bin}")
+    if args.mask:
+        from ..analysis.pixels import MASKS
+
+        bad = [n for n in args.mask.split(",") if n.strip() and n.strip() not in MASKS]
+        if bad:
+            raise InputError(f"--mask: unknown {', '.join(map(repr, bad))} (known: {', '.join(MASKS)})")
     _check_headers(args)      # shapes and sizes from the TIFF headers, before decoding anything
     meas, _ = io.read_tiff(args.measurement)
     psf, pmeta = io.read_tiff(args.psf)
@@ -180,6 +191,14 @@ def command(args) -> int:
         raise InputError(f"psf '{args.psf}': expected a (nz, My, Mx) stack, got shape {psf.shape}")
     vs, depths, how = _volume_geometry(args, pmeta, args.bin)
     off, psf_off = _offset(args.offset), _offset(args.psf_offset, "--psf-offset")
+    from ..analysis.pixels import check_pixels, mask_weights
+    from ..io.prepare import bin_image
+
+    pixels = check_pixels(meas, args.saturation, psf)
+    names = [n.strip() for n in args.mask.split(",") if n.strip()] if args.mask else []
+    weights = None
+    if names:                      # a binned pixel is masked when any of its sensor pixels is
+        weights = (bin_image(1.0 - mask_weights(meas, names, args.saturation, psf), args.bin) == 0).astype(float)
     y = prepare(meas, offset=off, bin_factor=args.bin, name=f"measurement '{args.measurement}'")
     h = prepare(psf, offset=psf_off, bin_factor=args.bin, name=f"psf '{args.psf}'")
     h = h[None] if h.ndim == 2 else h
@@ -205,10 +224,11 @@ def command(args) -> int:
     try:
         with outset:
             try:
-                rec = reconstruct(y, h, dtype=dt, backend=args.backend, device=args.device,
+                rec = reconstruct(y, h, dtype=dt, backend=args.backend, device=args.device, weights=weights,
                                   callback=progress, voxel_size_um=vs, depths_um=depths, **params)
             finally:
                 progress.close()
+            rec.info["pixels"] = {**pixels, "masked": names}
             vol = _write(args, out, outset, rec, dt, how)
     except OSError as exc:   # a full disk or a vanished folder while writing: nothing is left behind
         raise InputError(f"--output '{out}': writing failed ({exc.strerror or exc}); nothing was written") from exc
@@ -279,3 +299,10 @@ def _report(out, outset, rec, how, vol):
           f"measurement noise {info['noise_sigma']:.3g} of max y); "
           f"objective {last['objective']:.4e}, {last['seconds']:.1f} s on {info['device']}; "
           f"log: {outset.sidecars['log'].name}, {outset.sidecars['record'].name}")
+    px = info.get("pixels") or {}
+    for name in ("saturated", "hot"):
+        c = px.get(name, {}).get("count", 0)
+        if c:
+            print(f"  {c} {name} pixel(s) in the measurement, first at (row, column) "
+                  f"{', '.join(map(str, px[name]['first'][:5]))}; "
+                  + ("masked in the data term" if name in px.get("masked", []) else f"not masked (--mask {name})"))

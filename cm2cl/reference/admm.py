@@ -17,7 +17,7 @@ def normalisation(psf, y, padded_shape):
 
 
 def admm(y, psf, params=None, padded_shape=None, dtype=np.float64, workers=None, callback=None,
-         **kw):
+         weights=None, **kw):
     """Float64 (or ``dtype``) numpy ADMM for paper Eq. 4 with the splits of DESIGN.md section 3.
 
     Same algorithm, order of updates, residuals, balancing and stopping as the device solver.
@@ -40,12 +40,13 @@ def admm(y, psf, params=None, padded_shape=None, dtype=np.float64, workers=None,
     rfft = lambda a: sfft.rfft2(a, workers=workers)  # noqa: E731
     irfft = lambda a: sfft.irfft2(a, s=P, workers=workers)  # noqa: E731
 
-    s_h, s_y = normalisation(psf, y, P) if p.normalize else (1.0, 1.0)
+    wts = np.ones(M) if weights is None else np.asarray(weights, np.float64)
+    s_h, s_y = normalisation(psf, np.where(wts > 0, y, 0.0), P) if p.normalize else (1.0, 1.0)
     cdt = np.complex64 if dt == np.float32 else np.complex128
     Hs = (rfft(centered_psf(psf * s_h, P))).astype(cdt)
     hn2 = (np.abs(Hs) ** 2).sum(axis=0).astype(dt)
     ys = (y * s_y).astype(dt)
-    mask = embed(np.ones(M), P).astype(dt)
+    mask = embed(wts, P).astype(dt)   # each pixel's weight in the data term, 0 outside the sensor
     cty = embed(ys, P).astype(dt)
 
     x = np.zeros((nz,) + P, dt)
@@ -53,9 +54,10 @@ def admm(y, psf, params=None, padded_shape=None, dtype=np.float64, workers=None,
     pd = np.zeros((3,) + x.shape, dt)
     v = np.zeros(P, dt)
     xi = np.zeros(P, dt)
-    ctl = Control(p, ProblemScale.of(y * s_y, float(np.sum((psf * s_h) ** 2)), nz), callback)
+    ctl = Control(p, ProblemScale.of(np.where(wts > 0, y * s_y, 0.0), float(np.sum((psf * s_h) ** 2)), nz),
+                  callback)
     l1, tv = ctl.l1, ctl.tv
-    v = (cty / (mask + ctl.mu_v)).astype(dt)  # the data split's minimiser at x = 0: the first x step sees the data
+    v = (mask * cty / (mask + ctl.mu_v)).astype(dt)  # the data split's minimiser at x = 0: the first x step sees the data
     sq = lambda a: float(np.sum(np.asarray(a, np.float64) ** 2))  # noqa: E731
     for it in range(1, p.max_iter + 1):
         mu_v, mu_u, mu_w = ctl.mu_v, ctl.mu_u, ctl.mu_w
@@ -72,7 +74,7 @@ def admm(y, psf, params=None, padded_shape=None, dtype=np.float64, workers=None,
         w_new = np.maximum(x + rho / mu_w - l1 / mu_w, 0).astype(dt)
         rho += mu_w * (x - w_new)
         # v step: crop-aware data update
-        v_new = ((cty + mu_v * hx + xi) / (mask + mu_v)).astype(dt)
+        v_new = ((mask * cty + mu_v * hx + xi) / (mask + mu_v)).astype(dt)
         xi += mu_v * (hx - v_new)
         # u step: TV prox, warm-started dual
         z = x + eta / mu_u
@@ -82,7 +84,7 @@ def admm(y, psf, params=None, padded_shape=None, dtype=np.float64, workers=None,
             u_new = z
         u_new = u_new.astype(dt)
         eta += mu_u * (x - u_new)
-        done = ctl.update(it, data2=sq(crop(hx.astype(np.float64), M) - ys), l1=float(np.abs(x).sum()),
+        done = ctl.update(it, data2=float(np.sum(wts * (crop(hx.astype(np.float64), M) - ys) ** 2)), l1=float(np.abs(x).sum()),
                           tv=tv_value(x, p.tv_axial_weight, p.tv_isotropic), dx2=dx2, x2=sq(x),
                           rv2=sq(hx - v_new), dv2=sq(v_new - v), ru2=sq(x - u_new), du2=sq(u_new - u),
                           rw2=sq(x - w_new), dw2=sq(w_new - w), hx2=sq(hx), v2=sq(v_new), xi2=sq(xi),

@@ -39,6 +39,21 @@ log = logging.getLogger(__name__)
 #: 1.1-1.6x; GPUs keep hundreds of work-groups at this size for a few million voxels)
 PER_ITEM = 64
 
+def pixel_weights(weights, shape) -> np.ndarray:
+    """The data term's per-pixel weights: ones, or ``weights`` checked (the sensor's shape, finite, >= 0,
+    not all zero)."""
+    if weights is None:
+        return np.ones(shape)
+    w = np.asarray(weights, np.float64)
+    if w.shape != tuple(shape):
+        raise InputError(f"weights: shape {w.shape} does not match the measurement {tuple(shape)}")
+    if not np.all(np.isfinite(w)) or np.any(w < 0):
+        raise InputError("weights: must be finite and >= 0")
+    if not np.any(w > 0):
+        raise InputError("weights: every pixel is masked")
+    return w
+
+
 def _padded_arg(padded_shape) -> tuple[int, int]:
     """``padded_shape`` as two positive integers, or an InputError naming it."""
     try:
@@ -115,14 +130,14 @@ class ADMMSolver:
         self.pd = [vol() for _ in range(3)]
         self.spec = m.new_spectrum_volume()
         plane = lambda: Volume(rt, [(0, 1)], self.P, self.dtype)  # noqa: E731
-        self.v, self.xi, self.hx, self.cty, self.r = (plane() for _ in range(5))
+        self.v, self.xi, self.hx, self.cty, self.cw, self.r = (plane() for _ in range(6))
         splane = lambda: Volume(rt, [(0, 1)], m.spec_plane, m.cdtype)  # noqa: E731
         self.R, self.S, self.comp = (splane() for _ in range(3))
         self.partials = rt.zeros(NSLOTS * self.pstride, self.dtype)
         self.out = rt.zeros(NSLOTS, self.dtype)
         self.allocated_bytes = sum(a.nbytes for a in (
             [m.psf_spectra, self.hn2, self.x, self.g, self.u, self.w, self.eta, self.rho, self.spec,
-             self.v, self.xi, self.hx, self.cty, self.r, self.R, self.S, self.comp] + self.pd)) \
+             self.v, self.xi, self.hx, self.cty, self.cw, self.r, self.R, self.S, self.comp] + self.pd)) \
             + self.partials.nbytes + self.out.nbytes
         self._plan2d = get_plan(rt, self.P, 1, self.dtype, self.backend)
 
@@ -184,11 +199,15 @@ class ADMMSolver:
                              f"{self.dtype.name} can hold ({float(fi.smallest_subnormal):.3g}) and would read as "
                              "zeros; use dtype float64 or rescale the input")
 
-    def solve(self, y, callback=None, callback_every=1) -> Reconstruction:
+    def solve(self, y, callback=None, callback_every=1, weights=None) -> Reconstruction:
+        """Reconstruct from measurement ``y``; ``weights`` (optional, the sensor's shape, finite, >= 0)
+        weigh each pixel in the data term: 0 masks a pixel (saturated, hot), 1 is the default."""
         y = validate.real_array(y, "measurement", ndims=(2,))
         if y.shape != self.M:
             raise InputError(f"measurement: shape {y.shape} does not match the PSF's sensor grid {self.M}")
-        ymax = float(np.max(np.abs(y)))
+        wts = pixel_weights(weights, self.M)
+        used = y if weights is None else np.where(wts > 0, y, 0.0)
+        ymax = float(np.max(np.abs(used)))   # masked pixels do not set the scale
         # an all-zero frame (a dark frame of a series) is legal: its answer is x = 0, reached at once
         y_scale = 1.0 / ymax if self.p.normalize and ymax > 0 else 1.0
         self._check_range(self.psf_scale / y_scale, 1e6, 1e-6)   # refuses only what must fail
@@ -205,13 +224,17 @@ class ADMMSolver:
         m.embed_from_sensor(sensor.slabs[0], self.cty.slabs[0])
         bounds = m.bounds
         nslab = len(bounds)
-        ctl = Control(p, ProblemScale.of(y_n, self.spectral_mean, self.nz), callback, callback_every)
+        ctl = Control(p, ProblemScale.of(np.where(wts > 0, y_n, 0.0), self.spectral_mean, self.nz), callback,
+                      callback_every)
         aw, iso = R(p.tv_axial_weight), I(1 if p.tv_isotropic else 0)
         step = R(p.tv_step)
         # The data split starts at its minimiser for x = 0 (v = C^T y / (C^T C + mu_v)), not at 0, so that
         # the first x step already moves towards the data (a 1-iteration solve is not all zeros).
+        cw = np.zeros(self.P)
+        cw[oy:oy + my, ox:ox + mx] = wts
+        self.cw.set(cw[None])
         v0 = np.zeros(self.P)
-        v0[oy:oy + my, ox:ox + mx] = y_n / (1.0 + ctl.mu_v)
+        v0[oy:oy + my, ox:ox + mx] = wts * y_n / (wts + ctl.mu_v)
         self.v.set(v0[None])
         for it in range(1, p.max_iter + 1):
             mu_v, mu_u, mu_w = ctl.mu_v, ctl.mu_u, ctl.mu_w
@@ -227,8 +250,8 @@ class ADMMSolver:
                           rs.data, R(ctl.l1), R(mu_w), aw, iso, I(z1 - z0), I(ny), I(nx))
             # ---- v split
             self._red("update_v", ny * nx, RV2, self.v.slabs[0].data, self.xi.slabs[0].data,
-                      self.hx.slabs[0].data, self.cty.slabs[0].data, R(mu_v), I(ny), I(nx), I(my), I(mx),
-                      I(oy), I(ox))
+                      self.hx.slabs[0].data, self.cty.slabs[0].data, self.cw.slabs[0].data, R(mu_v), I(ny),
+                      I(nx))
             # ---- u split (TV)
             tau = ctl.tv / mu_u
             px_, py_, pz_ = self.pd
@@ -300,7 +323,7 @@ def reconstruct(measurement, psf, *,
                 mu_range: float = _D.mu_range, normalize: bool = _D.normalize,
                 dtype=np.float32, backend: str = "auto", device=None, padded_shape=None,
                 max_slab_planes: int | None = None, voxel_size_um=None, depths_um=None,
-                callback=None, callback_every: int = 1) -> Reconstruction:
+                weights=None, callback=None, callback_every: int = 1) -> Reconstruction:
     """Reconstruct a 3D volume from one CM2 measurement (paper Eq. 4) on an OpenCL device.
 
     Solves ``min_x 1/2 ||C H x - y||^2 + l1 ||x||_1 + tv TV_3D(x)`` subject to ``x >= 0`` by ADMM,
@@ -365,6 +388,9 @@ def reconstruct(measurement, psf, *,
         Object-space voxel size, carried to ``rec.voxel_size_um``.
     depths_um : (nz,) in um, optional
         Depth of each PSF plane, carried to ``rec.depths_um``.
+    weights : (My, Mx) array or None
+        Weight of each pixel in the data term (finite, >= 0): 0 masks a pixel (saturated or hot pixels,
+        see :func:`cm2cl.analysis.pixels.check_pixels`), None weighs all pixels 1.
     callback, callback_every : callable, int, optional
         ``callback(row)`` with each log row (a dict) every ``callback_every`` iterations.
 
@@ -414,7 +440,7 @@ def reconstruct(measurement, psf, *,
             raise InputError(f"depths_um: expected {psf.shape[0]} finite depths, got {np.shape(depths_um)}")
     solver = ADMMSolver(psf, prm, dtype=dtype, backend=backend, device=device,
                         padded_shape=padded_shape, max_slab_planes=max_slab_planes)
-    rec = solver.solve(y, callback=callback, callback_every=callback_every)
+    rec = solver.solve(y, callback=callback, callback_every=callback_every, weights=weights)
     rec.voxel_size_um, rec.depths_um = vs, d
     return rec
 
