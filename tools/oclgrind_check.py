@@ -68,6 +68,9 @@ def workload():
         dst = cl_array.empty_like(src)
         kernels.launch(rt, k, (100,), dst.data, src.data, np.uint64(100))
         assert np.array_equal(dst.get(), src.get())
+        from cm2cl.device.morphology import grey_opening
+
+        grey_opening(rng.random((9, 13)).astype(dtype), 1, 1)     # every line direction, min and max
         psf = rng.random((3, 8, 10)) ** 4
         meas = rng.random((8, 10))
         for contiguous in (0, 1):

@@ -77,6 +77,12 @@ def register(sub):
     g.add_argument("--mask", default=None,
                    help="comma-separated pixels to leave out of the data term: 'saturated' (at the bit depth's "
                         "maximum, or --saturation), 'hot' (isolated outliers); they are always counted and reported")
+    g.add_argument("--background", default=None,
+                   help="remove the slowly varying background before the solve (paper Fig. 5A): "
+                        "'opening:RADIUS_UM' or 'opening:RADIUSpx', a grey opening with a disk larger than the "
+                        "targets, on the device")
+    g.add_argument("--save-background", action="store_true",
+                   help="also write the removed background next to the output (OUT.background.ome.tif)")
     g.add_argument("--saturation", type=float, default=None,
                    help="saturation level of the measurement (default: the integer dtype's maximum)")
     g = r.add_argument_group("output")
@@ -176,6 +182,10 @@ def command(args) -> int:
             raise InputError(f"--output '{out}': would overwrite the input '{src}'")
     if args.bin < 1:
         raise InputError(f"--bin: must be an integer >= 1, got {args.bin}")
+    if args.background:
+        from ..io.background import check_background_spec
+
+        check_background_spec(args.background)
     if args.mask:
         from ..analysis.pixels import MASKS
 
@@ -183,7 +193,7 @@ def command(args) -> int:
         if bad:
             raise InputError(f"--mask: unknown {', '.join(map(repr, bad))} (known: {', '.join(MASKS)})")
     _check_headers(args)      # shapes and sizes from the TIFF headers, before decoding anything
-    meas, _ = io.read_tiff(args.measurement)
+    meas, mmeta = io.read_tiff(args.measurement)
     psf, pmeta = io.read_tiff(args.psf)
     if meas.ndim != 2:
         raise InputError(f"measurement '{args.measurement}': expected a 2D image, got shape {meas.shape}")
@@ -199,6 +209,13 @@ def command(args) -> int:
     weights = None
     if names:                      # a binned pixel is masked when any of its sensor pixels is
         weights = (bin_image(1.0 - mask_weights(meas, names, args.saturation, psf), args.bin) == 0).astype(float)
+    background = None
+    if args.background:
+        from ..io.background import parse_background, remove_background
+
+        px_um = (mmeta.get("voxel_size_um") or (None,))[-1] if mmeta.get("unit") == "um" else None
+        corrected, background = remove_background(meas, parse_background(args.background, px_um), args.device)
+        meas = corrected
     y = prepare(meas, offset=off, bin_factor=args.bin, name=f"measurement '{args.measurement}'")
     h = prepare(psf, offset=psf_off, bin_factor=args.bin, name=f"psf '{args.psf}'")
     h = h[None] if h.ndim == 2 else h
@@ -229,7 +246,14 @@ def command(args) -> int:
             finally:
                 progress.close()
             rec.info["pixels"] = {**pixels, "masked": names}
+            rec.info["background"] = args.background
             vol = _write(args, out, outset, rec, dt, how)
+            if background is not None and args.save_background:
+                bg_out = io.tiff_stem(out).with_name(io.tiff_stem(out).name + ".background.ome.tif")
+                io.write_tiff(bg_out, background.astype(np.float32),
+                              voxel_size_um=mmeta.get("voxel_size_um") if mmeta.get("unit") == "um" else None,
+                              extra={"what": "background removed from the measurement", "method": args.background,
+                                     "measurement": str(args.measurement)})
     except OSError as exc:   # a full disk or a vanished folder while writing: nothing is left behind
         raise InputError(f"--output '{out}': writing failed ({exc.strerror or exc}); nothing was written") from exc
     _report(out, outset, rec, how, vol)
