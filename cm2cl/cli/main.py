@@ -26,9 +26,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _registrars():
     """One module per sub-command, each with ``register(subparsers)`` and ``command(args)``."""
-    from . import demo, devices, reconstruct, simulate
+    from . import demo, devices, prepare_psf, reconstruct, simulate
 
-    return [devices.register, demo.register, simulate.register, reconstruct.register]
+    return [devices.register, demo.register, simulate.register, reconstruct.register, prepare_psf.register]
 
 
 def main(argv=None) -> int:
