@@ -173,17 +173,22 @@ def _ome_geometry(xml_text: str, ndim: int):
     return vs, depths, record
 
 
+def _existing_file(path) -> Path:
+    path = Path(path)
+    if not path.exists():
+        raise InputError(f"'{path}': no such file")
+    if path.is_dir():
+        raise InputError(f"'{path}': is a directory, expected a TIFF file")
+    return path
+
+
 def peek_tiff(path) -> tuple[tuple, np.dtype]:
     """(shape, dtype) of a TIFF's first series from its headers, without decoding any pixel: lets a
     command refuse a wrong or huge input before reading it. Axes of length 1 are dropped, as
     :func:`read_tiff` drops them for files without a cm2cl record."""
     import tifffile
 
-    path = Path(path)
-    if not path.exists():
-        raise InputError(f"'{path}': no such file")
-    if path.is_dir():
-        raise InputError(f"'{path}': is a directory, expected a TIFF file")
+    path = _existing_file(path)
     try:
         with tifffile.TiffFile(path) as tf:
             s = tf.series[0]
@@ -206,11 +211,7 @@ def read_tiff(path):
     """
     import tifffile
 
-    path = Path(path)
-    if not path.exists():
-        raise InputError(f"'{path}': no such file")
-    if path.is_dir():
-        raise InputError(f"'{path}': is a directory, expected a TIFF file")
+    path = _existing_file(path)
     try:
         with tifffile.TiffFile(path) as tf:
             arr = tf.asarray()
