@@ -236,3 +236,16 @@ def test_simulate_cli_refuses_a_huge_scene_and_leaves_nothing(tmp_path):
                         str(tmp_path / "sim")], capture_output=True, text=True)
     assert r.returncode == 2 and "can be generated" in r.stderr and len(r.stderr.strip().splitlines()) == 1
     assert [p.name for p in tmp_path.iterdir()] == ["huge.toml"]
+
+
+def test_simulate_checks_the_disk_before_rendering(tmp_path, monkeypatch):
+    from cm2cl import simulate
+    from cm2cl.errors import InputError
+    from cm2cl.io import staging
+
+    calls = []
+    monkeypatch.setattr(simulate.pipeline, "simulate_scene", lambda *a, **k: calls.append(1))
+    monkeypatch.setattr(staging.shutil, "disk_usage", lambda p: type("U", (), {"free": 1000})())
+    with pytest.raises(InputError, match="MiB free"):
+        simulate.simulate("demo_beads", tmp_path / "sim")
+    assert calls == [] and not (tmp_path / "sim").exists()

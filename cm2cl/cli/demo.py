@@ -56,7 +56,7 @@ def demo(outdir="cm2cl-demo", *, device=None, seed=None, max_iter: int = RECON["
     if max_iter < 1:
         raise InputError(f"--iterations: must be >= 1, got {max_iter}")
     out = Path(outdir)
-    check_output_dir(out, "demo.json")
+    check_output_dir(out, "demo.json", expected_bytes=8 << 20)   # the demo writes about 5 MB
     t0 = time.perf_counter()
 
     scene = load_scene(SCENE)

@@ -31,10 +31,10 @@ def jsonable(obj):
     return obj
 
 
-def check_output_dir(outdir, record_name: str | None = None) -> Path:
+def check_output_dir(outdir, record_name: str | None = None, expected_bytes: int = 0) -> Path:
     """The parent of an output folder, created if needed, checked before any work: an InputError if
-    ``outdir`` is a file, its parent is not writable, or it is a non-empty folder that is not a previous
-    output of the same command (no ``record_name`` in it)."""
+    ``outdir`` is a file, its parent is not writable or lacks room for ``expected_bytes``, or it is a
+    non-empty folder that is not a previous output of the same command (no ``record_name`` in it)."""
     out = Path(outdir)
     if out.exists() and not out.is_dir():
         raise InputError(f"output '{out}': exists and is not a directory")
@@ -45,6 +45,10 @@ def check_output_dir(outdir, record_name: str | None = None) -> Path:
         raise InputError(f"output '{out}': cannot create its parent directory ({exc})") from exc
     if not os.access(parent, os.W_OK | os.X_OK):
         raise InputError(f"output '{out}': folder '{parent}' is not writable")
+    free = shutil.disk_usage(parent).free
+    if expected_bytes and free < int(expected_bytes * 1.05) + (1 << 20):
+        raise InputError(f"output '{out}': {free / 2**20:.0f} MiB free in '{parent}', the output needs about "
+                         f"{expected_bytes / 2**20:.0f} MiB")
     if record_name and out.is_dir() and any(out.iterdir()) and not (out / record_name).exists():
         raise InputError(f"output '{out}': a non-empty folder that is not a previous output of this "
                          f"command (no {record_name}); not replaced: choose a new or empty folder")

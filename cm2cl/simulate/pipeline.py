@@ -278,7 +278,9 @@ def simulate(scene, outdir, seed: int | None = None, device=None) -> dict:
     JSON record last, so an interrupted run never leaves output that looks complete.
     Returns the record (as written to simulation.json)."""
     scene = load_scene(scene)
-    check_output_dir(outdir, "simulation.json")  # before the (long) run
+    planes, (my, mx) = len(scene.depths_um), scene.optics.shape
+    out_bytes = 4 * my * mx * (2 * planes + 1)       # measurement, PSF stack and ground truth (float32)
+    check_output_dir(outdir, "simulation.json", expected_bytes=out_bytes)  # before the (long) run
     return write_simulation(simulate_scene(scene, seed, device), outdir)
 
 
