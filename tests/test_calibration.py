@@ -135,3 +135,16 @@ def test_cli_writes_a_stack_reconstruct_takes_with_its_scale(rt, tmp_path, capsy
     assert stack.shape[0] == 5 and meta["voxel_size_um"] == (20.0, 4.2, 4.2)
     assert meta["depths_um"] == [5.0, 25.0, 45.0, 65.0, 85.0]
     assert (tmp_path / "psf.cm2cl.json").exists()
+
+
+@pytest.mark.skipif(not DATA.exists(), reason="../shared/data/diffusercam-3d not present")
+def test_diffusercam_measurement_saturation_is_reported():
+    """The real DiffuserCam 3D image has pixels at 65535 (its README): they are counted and located."""
+    from cm2cl.analysis import check_pixels
+
+    img = tifffile.imread(DATA / "image.tiff")
+    rep = check_pixels(img)
+    assert rep["saturated"]["level"] == 65535.0
+    assert rep["saturated"]["count"] == int((img == 65535).sum()) > 0
+    r, c = rep["saturated"]["first"][0]
+    assert img[r, c] == 65535

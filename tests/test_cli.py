@@ -41,7 +41,7 @@ def test_reconstruct_bad_input_writes_nothing(rt, tmp_path, capsys):
     meas, psf = _files(tmp_path)
     tifffile.imwrite(tmp_path / "small.tif", np.ones((32, 30), np.uint16))
     cases = [
-        (["reconstruct", str(tmp_path / "small.tif"), "--psf", str(psf)], "does not match the PSF"),
+        (["reconstruct", str(tmp_path / "small.tif"), "--psf", str(psf), "--bin", "64"], "smaller than the bin"),
         (["reconstruct", str(meas), "--psf", str(psf), "--tv", "-1"], "tv: must be >= 0, got -1.0"),
         (["reconstruct", str(tmp_path / "nope.tif"), "--psf", str(psf)], "no such file"),
         (["reconstruct", str(meas), "--psf", str(psf), "--offset", "dark"], "--offset: expected"),
@@ -155,3 +155,29 @@ def test_measurement_offset_is_not_subtracted_from_the_psf(rt, tmp_path, capsys)
     assert main(argv) == 0
     assert main(argv + ["--psf-offset", "100"]) == 2      # the old behaviour, now asked for explicitly
     assert "all zero" in capsys.readouterr().err
+
+
+def test_a_psf_of_another_lateral_size_is_centred_on_the_sensor(rt, tmp_path, capsys):
+    """Issue 12 item 4: a cropped calibration (PSF smaller than the sensor) is zero-padded, a wider one
+    cropped, both centred on the array centre, with a note; the solve equals one with the PSF fitted by
+    hand."""
+    import cm2cl
+
+    psf, _, y = bead_problem(6)
+    tifffile.imwrite(tmp_path / "meas.tif", y.astype(np.float32))
+    small = psf[:, 2:-2, 3:-3]                                # 28 x 34 of the 32 x 40 sensor
+    tifffile.imwrite(tmp_path / "psf.tif", small.astype(np.float32), photometric="minisblack")
+    out = tmp_path / "v.ome.tif"
+    assert main(["reconstruct", str(tmp_path / "meas.tif"), "--psf", str(tmp_path / "psf.tif"), "-o", str(out),
+                 "--max-iter", "10", "--quiet"]) == 0
+    err = capsys.readouterr().err
+    assert "zero-padded 28 -> 32 rows, zero-padded 34 -> 40 columns, centred" in err
+    vol, _ = io.read_tiff(out)
+    fitted = np.pad(small, ((0, 0), (2, 2), (3, 3))).astype(np.float32)
+    ref = cm2cl.reconstruct(y.astype(np.float32), fitted, max_iter=10)
+    np.testing.assert_allclose(vol, ref.volume, rtol=1e-5, atol=1e-6 * ref.volume.max())
+    wide = np.pad(psf, ((0, 0), (3, 3), (1, 1)))
+    tifffile.imwrite(tmp_path / "wide.tif", wide.astype(np.float32), photometric="minisblack")
+    assert main(["reconstruct", str(tmp_path / "meas.tif"), "--psf", str(tmp_path / "wide.tif"), "-o",
+                 str(tmp_path / "w.ome.tif"), "--max-iter", "2", "--quiet"]) == 0
+    assert "cropped 38 -> 32 rows, cropped 42 -> 40 columns" in capsys.readouterr().err

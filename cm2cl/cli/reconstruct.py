@@ -199,6 +199,11 @@ def command(args) -> int:
         raise InputError(f"measurement '{args.measurement}': expected a 2D image, got shape {meas.shape}")
     if psf.ndim not in (2, 3):
         raise InputError(f"psf '{args.psf}': expected a (nz, My, Mx) stack, got shape {psf.shape}")
+    from ..io.prepare import fit_psf_to_sensor
+
+    psf, fit_note = fit_psf_to_sensor(psf, meas.shape, f"psf '{args.psf}'")
+    if fit_note:
+        print(f"cm2cl: note: {fit_note}", file=sys.stderr)
     vs, depths, how = _volume_geometry(args, pmeta, args.bin)
     off, psf_off = _offset(args.offset), _offset(args.psf_offset, "--psf-offset")
     from ..analysis.pixels import check_pixels, mask_weights
@@ -247,6 +252,7 @@ def command(args) -> int:
                 progress.close()
             rec.info["pixels"] = {**pixels, "masked": names}
             rec.info["background"] = args.background
+            rec.info["psf_fit"] = fit_note
             vol = _write(args, out, outset, rec, dt, how)
             if background is not None and args.save_background:
                 bg_out = io.tiff_stem(out).with_name(io.tiff_stem(out).name + ".background.ome.tif")
@@ -276,9 +282,6 @@ def _check_headers(args) -> None:
         raise InputError(f"psf '{args.psf}': expected a (nz, My, Mx) stack, got shape {ps}")
     if min(ms) < args.bin:
         raise InputError(f"measurement '{args.measurement}': shape {ms} is smaller than the bin factor {args.bin}")
-    if ms != ps[-2:]:
-        raise InputError(f"measurement '{args.measurement}': shape {ms} does not match the PSF '{args.psf}' "
-                         f"sensor grid {ps[-2:]}")
     need = 8 * (int(np.prod(ms)) + int(np.prod(ps))) * 2      # decoded as float64, plus a prepared copy
     have = host_available_bytes()
     if have and need > have:

@@ -46,3 +46,30 @@ def prepare(img, *, offset="auto", bin_factor: int = 1, name: str = "image") -> 
         offset = estimate_offset(img)
     out = subtract_offset(img, offset) if offset is not None else np.asarray(img, np.float64)
     return bin_image(out, bin_factor, name)
+
+
+def fit_psf_to_sensor(psf, sensor_shape, name: str = "psf"):
+    """(psf, note): a PSF stack (nz, Py, Px) brought to the sensor's (My, Mx), centred on the array's
+    optical axis (the array centre): cropped where larger (a scan wider than the sensor), zero-padded where
+    smaller (a cropped calibration scan: no light is assumed outside it). ``note`` says what was done
+    (None when the sizes already match)."""
+    h = np.asarray(psf)
+    sensor = tuple(int(n) for n in sensor_shape)
+    if h.shape[-2:] == sensor:
+        return h, None
+    out = h
+    done = []
+    for axis, (p, m) in enumerate(zip(h.shape[-2:], sensor)):
+        ax = h.ndim - 2 + axis
+        if p > m:
+            start = (p - m) // 2
+            out = np.take(out, np.arange(start, start + m), axis=ax)
+            done.append(f"cropped {p} -> {m} {'rows' if axis == 0 else 'columns'}")
+        elif p < m:
+            before = (m - p) // 2
+            pad = [(0, 0)] * out.ndim
+            pad[ax] = (before, m - p - before)
+            out = np.pad(out, pad)
+            done.append(f"zero-padded {p} -> {m} {'rows' if axis == 0 else 'columns'}")
+    return out, (f"{name}: lateral size {h.shape[-2:]} differs from the measurement's {sensor}: "
+                 + ", ".join(done) + ", centred on the array centre")
