@@ -148,3 +148,12 @@ def test_diffusercam_measurement_saturation_is_reported():
     assert rep["saturated"]["count"] == int((img == 65535).sum()) > 0
     r, c = rep["saturated"]["first"][0]
     assert img[r, c] == 65535
+
+
+def test_corners_that_are_not_dark_are_warned_with_their_level(caplog):
+    planes = np.full((3, 64, 64), 50.0)
+    planes[:, 28:36, 28:36] += 200.0                 # the spot; the corners hold 50 = 20% of the peak
+    with caplog.at_level("WARNING", logger="cm2cl"):
+        _, _, rec = prepare_psf_stack(planes, [0, 10, 20], register=False, noise_floor=0)
+    assert rec["warnings"] and "are not dark" in rec["warnings"][0] and "median up to 50" in rec["warnings"][0]
+    assert "are not dark" in caplog.text
