@@ -199,12 +199,13 @@ def command(args) -> int:
         raise InputError(f"measurement '{args.measurement}': expected a 2D image, got shape {meas.shape}")
     if psf.ndim not in (2, 3):
         raise InputError(f"psf '{args.psf}': expected a (nz, My, Mx) stack, got shape {psf.shape}")
-    from ..io.prepare import fit_psf_to_sensor
-
-    psf, fit_note = fit_psf_to_sensor(psf, meas.shape, f"psf '{args.psf}'")
-    if fit_note:
-        print(f"cm2cl: note: {fit_note}", file=sys.stderr)
-    vs, depths, how = _volume_geometry(args, pmeta, args.bin)
+    # a PSF already on the binned grid (cm2cl prepare-psf --bin N) is not binned again
+    working = tuple(n // args.bin for n in meas.shape)
+    psf_bin = 1 if args.bin > 1 and tuple(psf.shape[-2:]) == working else args.bin
+    if psf_bin != args.bin:
+        print(f"cm2cl: note: psf '{args.psf}' is already on the {args.bin}x binned grid {working}: only the "
+              "measurement is binned", file=sys.stderr)
+    vs, depths, how = _volume_geometry(args, pmeta, psf_bin)
     off, psf_off = _offset(args.offset), _offset(args.psf_offset, "--psf-offset")
     from ..analysis.pixels import check_pixels, mask_weights
     from ..io.prepare import bin_image
@@ -222,11 +223,13 @@ def command(args) -> int:
         corrected, background = remove_background(meas, parse_background(args.background, px_um), args.device)
         meas = corrected
     y = prepare(meas, offset=off, bin_factor=args.bin, name=f"measurement '{args.measurement}'")
-    h = prepare(psf, offset=psf_off, bin_factor=args.bin, name=f"psf '{args.psf}'")
+    h = prepare(psf, offset=psf_off, bin_factor=psf_bin, name=f"psf '{args.psf}'")
     h = h[None] if h.ndim == 2 else h
-    if y.shape != h.shape[1:]:
-        raise InputError(f"measurement '{args.measurement}': shape {y.shape} does not match the PSF "
-                         f"'{args.psf}' sensor grid {h.shape[1:]}")
+    from ..io.prepare import fit_psf_to_sensor
+
+    h, fit_note = fit_psf_to_sensor(h, y.shape, f"psf '{args.psf}'")    # on the working grid
+    if fit_note:
+        print(f"cm2cl: note: {fit_note}", file=sys.stderr)
     if depths is not None and len(depths) != h.shape[0]:
         raise InputError(f"psf '{args.psf}': {len(depths)} plane positions for {h.shape[0]} planes")
     dt = np.dtype(args.dtype)
