@@ -199,12 +199,7 @@ def command(args) -> int:
         raise InputError(f"measurement '{args.measurement}': expected a 2D image, got shape {meas.shape}")
     if psf.ndim not in (2, 3):
         raise InputError(f"psf '{args.psf}': expected a (nz, My, Mx) stack, got shape {psf.shape}")
-    # a PSF already on the binned grid (cm2cl prepare-psf --bin N) is not binned again
-    working = tuple(n // args.bin for n in meas.shape)
-    psf_bin = 1 if args.bin > 1 and tuple(psf.shape[-2:]) == working else args.bin
-    if psf_bin != args.bin:
-        print(f"cm2cl: note: psf '{args.psf}' is already on the {args.bin}x binned grid {working}: only the "
-              "measurement is binned", file=sys.stderr)
+    psf_bin = psf_binning(args, psf.shape, meas.shape)
     vs, depths, how = _volume_geometry(args, pmeta, psf_bin)
     off, psf_off = _offset(args.offset), _offset(args.psf_offset, "--psf-offset")
     from ..analysis.pixels import check_pixels, mask_weights
@@ -223,13 +218,7 @@ def command(args) -> int:
         corrected, background = remove_background(meas, parse_background(args.background, px_um), args.device)
         meas = corrected
     y = prepare(meas, offset=off, bin_factor=args.bin, name=f"measurement '{args.measurement}'")
-    h = prepare(psf, offset=psf_off, bin_factor=psf_bin, name=f"psf '{args.psf}'")
-    h = h[None] if h.ndim == 2 else h
-    from ..io.prepare import fit_psf_to_sensor
-
-    h, fit_note = fit_psf_to_sensor(h, y.shape, f"psf '{args.psf}'")    # on the working grid
-    if fit_note:
-        print(f"cm2cl: note: {fit_note}", file=sys.stderr)
+    h, fit_note = psf_on_working_grid(args, psf, psf_off, psf_bin, y.shape)
     if depths is not None and len(depths) != h.shape[0]:
         raise InputError(f"psf '{args.psf}': {len(depths)} plane positions for {h.shape[0]} planes")
     dt = np.dtype(args.dtype)
@@ -267,6 +256,29 @@ def command(args) -> int:
         raise InputError(f"--output '{out}': writing failed ({exc.strerror or exc}); nothing was written") from exc
     _report(out, outset, rec, how, vol)
     return 0
+
+
+def psf_binning(args, psf_shape, meas_shape) -> int:
+    """The binning the PSF needs: ``--bin``, or 1 for a PSF already on the binned grid (prepare-psf --bin N)."""
+    working = tuple(n // args.bin for n in meas_shape)
+    if args.bin > 1 and tuple(psf_shape[-2:]) == working:
+        print(f"cm2cl: note: psf '{args.psf}' is already on the {args.bin}x binned grid {working}: only the "
+              "measurement is binned", file=sys.stderr)
+        return 1
+    return args.bin
+
+
+def psf_on_working_grid(args, psf, psf_off, psf_bin, working):
+    """(h (nz, My, Mx) float64, note): the PSF offset, binned and centred on the working grid (zero-padded
+    or cropped when its lateral size differs), with the note said on stderr."""
+    from ..io.prepare import fit_psf_to_sensor, prepare
+
+    h = prepare(psf, offset=psf_off, bin_factor=psf_bin, name=f"psf '{args.psf}'")
+    h = h[None] if h.ndim == 2 else h
+    h, note = fit_psf_to_sensor(h, working, f"psf '{args.psf}'")
+    if note:
+        print(f"cm2cl: note: {note}", file=sys.stderr)
+    return h, note
 
 
 def _check_headers(args) -> None:

@@ -51,7 +51,7 @@ def command(args) -> int:
     from ..jobs import FrameSeries, FrameStore, run_series
     from ..jobs.run import fingerprint
     from ..solver.params import PRESETS, ADMMParams
-    from .reconstruct import _offset, _volume_geometry
+    from .reconstruct import _offset, _volume_geometry, psf_binning, psf_on_working_grid
 
     out = Path(args.output)
     if args.bin < 1:
@@ -61,13 +61,12 @@ def command(args) -> int:
     if psf.ndim not in (2, 3):
         raise InputError(f"psf '{args.psf}': expected a (nz, My, Mx) stack, got shape {psf.shape}")
     off, psf_off = _offset(args.offset), _offset(args.psf_offset, "--psf-offset")
-    h = prepare(psf, offset=psf_off, bin_factor=args.bin, name=f"psf '{args.psf}'")
-    h = h[None] if h.ndim == 2 else h
+    if min(series.shape) < args.bin:
+        raise InputError(f"measurement: frames of shape {series.shape} are smaller than the bin factor {args.bin}")
     sensor = tuple(n // args.bin for n in series.shape)
-    if sensor != h.shape[1:]:
-        raise InputError(f"measurement '{series.frames[0].path}': frames of shape {series.shape} (binned "
-                         f"{sensor}) do not match the PSF '{args.psf}' sensor grid {h.shape[1:]}")
-    vs, depths, how = _volume_geometry(args, pmeta, args.bin)
+    psf_bin = psf_binning(args, psf.shape, series.shape)
+    h, _ = psf_on_working_grid(args, psf, psf_off, psf_bin, sensor)
+    vs, depths, how = _volume_geometry(args, pmeta, psf_bin)
     devices = devices_arg(args.device) if not args.scheduler else [None]
     if args.scheduler:
         check_scheduler(args.scheduler)
