@@ -106,7 +106,7 @@ def test_bad_inputs_are_clear_errors(rt):
     bad[0] = 0
     with pytest.raises(ValueError, match=r"psf: depth plane\(s\) \[0\] are all zero"):
         ForwardModel(bad)
-    with pytest.raises(ValueError, match=r"padded_shape: \(10, 16\) is smaller than 2\*sensor-1"):
+    with pytest.raises(ValueError, match=r"padded_shape: \(10, 16\) is smaller than sensor \+ PSF support - 1"):
         ForwardModel(good, padded_shape=(10, 16))
     m = ForwardModel(good)
     with pytest.raises(ValueError, match=r"x: shape \(2, 8, 8\) does not fit the model"):

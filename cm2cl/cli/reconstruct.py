@@ -59,6 +59,10 @@ def register(sub):
                    help="penalty policy: adaptive (from the problem's scale, rebalanced on large imbalances), "
                         "balance (the CM2 authors' x1.1 steps), fixed (default %(default)s)")
     g.add_argument("--dtype", choices=["float32", "float64"], default="float32")
+    g.add_argument("--padding", choices=["full", "support"], default="full",
+                   help="padded grid: 'full' = 2M - 1; 'support' = M + K - 1 with K the PSF stack's measured "
+                        "support (fewer voxels for a compact PSF; its faint tails beyond 1e-6 of the light are "
+                        "dropped); single frames")
     g.add_argument("--backend", default="auto", help="FFT backend: auto, cl, vkfft, reikna")
     g.add_argument("--device", default=None,
                    help="device index or name fragment (see cm2cl devices); for a series also 'all' or '0,2' "
@@ -239,6 +243,7 @@ def command(args) -> int:
         with outset:
             try:
                 rec = reconstruct(y, h, dtype=dt, backend=args.backend, device=args.device, weights=weights,
+                                  padding=args.padding,
                                   callback=progress, voxel_size_um=vs, depths_um=depths, **params)
             finally:
                 progress.close()

@@ -89,8 +89,9 @@ class ADMMSolver:
                                             or not isinstance(max_slab_planes, (int, np.integer))
                                             or max_slab_planes < 1):
             raise InputError(f"max_slab_planes: expected an integer >= 1 or None, got {max_slab_planes!r}")
-        if any(p < n for p, n in zip(P, min_padded_shape(sensor))):
-            raise InputError(f"padded_shape: {P} is smaller than 2*sensor-1 = {min_padded_shape(sensor)}")
+        need = min_padded_shape(sensor, psf)
+        if any(p < max(n, m) for p, n, m in zip(P, need, sensor)):
+            raise InputError(f"padded_shape: {P} is smaller than sensor + PSF support - 1 = {need}")
         self.memory = check_fits(rt, psf.shape[0], P, self.dtype, self.backend)
         self.model = m = ForwardModel(psf, dtype=self.dtype, backend=self.backend, device=rt,
                                       padded_shape=P, max_slab_planes=max_slab_planes)
@@ -323,7 +324,7 @@ def reconstruct(measurement, psf, *,
                 mu_range: float = _D.mu_range, normalize: bool = _D.normalize,
                 dtype=np.float32, backend: str = "auto", device=None, padded_shape=None,
                 max_slab_planes: int | None = None, voxel_size_um=None, depths_um=None,
-                weights=None, callback=None, callback_every: int = 1) -> Reconstruction:
+                weights=None, padding: str = "full", callback=None, callback_every: int = 1) -> Reconstruction:
     """Reconstruct a 3D volume from one CM2 measurement (paper Eq. 4) on an OpenCL device.
 
     Solves ``min_x 1/2 ||C H x - y||^2 + l1 ||x||_1 + tv TV_3D(x)`` subject to ``x >= 0`` by ADMM,
@@ -391,6 +392,10 @@ def reconstruct(measurement, psf, *,
     weights : (My, Mx) array or None
         Weight of each pixel in the data term (finite, >= 0): 0 masks a pixel (saturated or hot pixels,
         see :func:`cm2cl.analysis.pixels.check_pixels`), None weighs all pixels 1.
+    padding : 'full' or 'support'
+        'full' (default): the padded grid is 2M - 1 (rounded up to a fast size), right for a PSF that may
+        fill the sensor. 'support': M + K - 1 with K the PSF stack's measured support (99.9999% of its
+        light; the tails beyond are dropped, ``rec.info['padding']`` says how much and the voxels saved).
     callback, callback_every : callable, int, optional
         ``callback(row)`` with each log row (a dict) every ``callback_every`` iterations.
 
@@ -438,11 +443,26 @@ def reconstruct(measurement, psf, *,
         d = np.asarray(depths_um, float).ravel()
         if d.size != psf.shape[0] or not np.all(np.isfinite(d)):
             raise InputError(f"depths_um: expected {psf.shape[0]} finite depths, got {np.shape(depths_um)}")
+    pad_info = None
+    if padding not in ("full", "support"):
+        raise InputError(f"padding: expected 'full' or 'support', got {padding!r}")
+    if padding == "support":
+        if padded_shape is not None:
+            raise InputError("padding: 'support' chooses the padded grid itself; give padded_shape or padding, not both")
+        from .forward import support_padding
+
+        psf, padded_shape, pad_info = support_padding(psf, fft_backend(backend, device))
     solver = ADMMSolver(psf, prm, dtype=dtype, backend=backend, device=device,
                         padded_shape=padded_shape, max_slab_planes=max_slab_planes)
     rec = solver.solve(y, callback=callback, callback_every=callback_every, weights=weights)
     rec.voxel_size_um, rec.depths_um = vs, d
+    rec.info["padding"] = pad_info or {"padded_shape": list(solver.P), "support_px": None}
     return rec
+
+
+def fft_backend(backend, device) -> str:
+    """The FFT backend ``backend`` resolves to on ``device``."""
+    return resolve_backend(backend, get_runtime(device))
 
 
 __all__ = ["ADMMSolver", "reconstruct"]
