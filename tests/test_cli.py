@@ -181,3 +181,32 @@ def test_a_psf_of_another_lateral_size_is_centred_on_the_sensor(rt, tmp_path, ca
     assert main(["reconstruct", str(tmp_path / "meas.tif"), "--psf", str(tmp_path / "wide.tif"), "-o",
                  str(tmp_path / "w.ome.tif"), "--max-iter", "2", "--quiet"]) == 0
     assert "cropped 38 -> 32 rows, cropped 42 -> 40 columns" in capsys.readouterr().err
+
+
+def test_dry_run_plans_from_the_headers_and_writes_nothing(rt, tmp_path, capsys, monkeypatch):
+    from cm2cl.solver.memory import memory_estimate
+
+    meas, psf = _files(tmp_path)
+    read = []
+    monkeypatch.setattr(io, "read_tiff", lambda p: read.append(p))
+    out = tmp_path / "v.ome.tif"
+    assert main(["reconstruct", str(meas), "--psf", str(psf), "-o", str(out), "--dry-run"]) == 0
+    text = capsys.readouterr().out
+    est = memory_estimate(4, (64, 80), np.float32, "cl")
+    assert "4 planes x 32 x 40 sensor" in text and "padded 64 x 80" in text
+    assert f"{est['total'] / 2**30:.2f} GiB" in text and "fits: run without --dry-run" in text
+    assert read == [] and not out.exists()
+
+
+def test_memory_estimate_bounds_the_solvers_allocations(rt):
+    """The plan's device bytes come from the same accounting as the solver's buffers: never below what
+    the solver allocates, at most 5% above (FFT libraries' own scratch not included)."""
+    from cm2cl.solver.admm import ADMMSolver
+    from cm2cl.solver.memory import memory_estimate
+    from cm2cl.solver.params import ADMMParams
+
+    psf, _, _ = bead_problem(7)
+    for P in ((64, 80), (72, 96)):
+        s = ADMMSolver(psf, ADMMParams(), padded_shape=P)
+        est = memory_estimate(4, P, np.float32, s.backend)["total"]
+        assert s.allocated_bytes <= est <= 1.05 * s.allocated_bytes, (P, s.allocated_bytes, est)

@@ -95,6 +95,9 @@ def register(sub):
     g.add_argument("--voxel-size", type=float, nargs=3, metavar=("DZ", "DY", "DX"), default=None,
                    help="object-space voxel size in um of the PSF stack's grid (before --bin); overrides the "
                         "PSF's own; without it and without an object-space PSF the volume is in pixels")
+    g.add_argument("--dry-run", action="store_true",
+                   help="print the plan (grid, device and host memory, whether it fits) from the TIFF headers, "
+                        "solve and write nothing")
     g.add_argument("--quiet", action="store_true",
                    help="no progress bar (there is none either when stderr is not a terminal)")
     r.set_defaults(func=command)
@@ -196,6 +199,8 @@ def command(args) -> int:
         bad = [n for n in args.mask.split(",") if n.strip() and n.strip() not in MASKS]
         if bad:
             raise InputError(f"--mask: unknown {', '.join(map(repr, bad))} (known: {', '.join(MASKS)})")
+    if args.dry_run:
+        return _plan(args)
     _check_headers(args)      # shapes and sizes from the TIFF headers, before decoding anything
     meas, mmeta = io.read_tiff(args.measurement)
     psf, pmeta = io.read_tiff(args.psf)
@@ -284,6 +289,37 @@ def psf_on_working_grid(args, psf, psf_off, psf_bin, working):
     if note:
         print(f"cm2cl: note: {note}", file=sys.stderr)
     return h, note
+
+
+def _plan(args) -> int:
+    """``--dry-run``: what the solve would need, from the headers only; exit 0 when it fits, 2 when not."""
+    from .. import io
+    from ..device import get_runtime
+    from ..device.fft import resolve_backend
+    from ..solver.forward import choose_padded_shape
+    from ..solver.memory import host_available_bytes, memory_estimate
+
+    (ms, mdt), (ps, pdt) = io.peek_tiff(args.measurement), io.peek_tiff(args.psf)
+    rt = get_runtime(args.device)
+    dt = np.dtype(args.dtype)
+    backend = resolve_backend(args.backend, rt)
+    sensor = tuple(n // args.bin for n in ms)
+    nz = ps[0] if len(ps) == 3 else 1
+    P = choose_padded_shape(sensor, backend)
+    est = memory_estimate(nz, P, dt, backend)
+    host = 8 * 2 * (int(np.prod(ms)) + int(np.prod(ps)))
+    budget = int(rt.caps.global_mem * 0.9)
+    fits = est["total"] <= budget and host <= host_available_bytes()
+    print(f"plan: {nz} planes x {sensor[0]} x {sensor[1]} sensor ({ms[0]} x {ms[1]} binned {args.bin}x), padded "
+          f"{P[0]} x {P[1]} (2M - 1; --padding support may shrink it), {dt.name}, FFT {backend}")
+    print(f"  device {rt.caps.name}: {est['total'] / 2**30:.2f} GiB of {budget / 2**30:.2f} GiB usable "
+          f"({est['per_plane'] / 2**20:.1f} MiB per plane + {est['fixed'] / 2**20:.1f} MiB); "
+          f"{max(0, (budget - est['fixed']) // est['per_plane'])} planes fit")
+    print(f"  host: {host / 2**30:.2f} GiB to decode and prepare the inputs, "
+          f"{host_available_bytes() / 2**30:.1f} GiB available")
+    print(f"  output: {nz * int(np.prod(sensor)) * dt.itemsize / 2**20:.1f} MiB; "
+          + ("fits: run without --dry-run" if fits else "does NOT fit: bin the measurement, use fewer planes"))
+    return 0 if fits else 2
 
 
 def _check_headers(args) -> None:

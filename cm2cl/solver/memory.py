@@ -29,7 +29,7 @@ def memory_estimate(nz, padded_shape, dtype, backend) -> dict:
     spec_plane = int(np.prod(spectrum_shape((py, px), backend))) * 2 * item
     real_plane = py * px * item
     per_plane = REAL_VOLUMES * real_plane + 2 * spec_plane  # + x spectra + PSF spectra
-    fixed = 6 * real_plane + 4 * spec_plane  # planes: v, xi, hx, cty, r, psf tmp; R, S, comp, hn2
+    fixed = 7 * real_plane + 4 * spec_plane  # planes: v, xi, hx, cty, cw, r, psf tmp; R, S, comp, hn2
     return {"per_plane": per_plane, "fixed": fixed, "total": nz * per_plane + fixed,
             "real_volume": nz * real_plane, "psf_spectra": nz * spec_plane}
 
