@@ -250,3 +250,15 @@ def test_simulate_checks_the_disk_before_rendering(tmp_path, monkeypatch):
     with pytest.raises(InputError, match="MiB free"):
         simulate.simulate("demo_beads", tmp_path / "sim")
     assert calls == [] and not (tmp_path / "sim").exists()
+
+
+def test_a_second_simulate_on_the_same_folder_is_refused(tmp_path):
+    from cm2cl.errors import InputError
+    from cm2cl.io.staging import StagedOutput
+
+    with StagedOutput(tmp_path / "sim", "simulation.json"):
+        with pytest.raises(InputError, match="another run is writing it"):
+            StagedOutput(tmp_path / "sim", "simulation.json")
+    with StagedOutput(tmp_path / "sim", "simulation.json"):   # released at the end
+        pass
+    assert [p.name for p in tmp_path.iterdir()] == []

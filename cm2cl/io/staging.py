@@ -82,8 +82,13 @@ class StagedOutput:
     def __init__(self, outdir, record_name: str | None = None):
         import tempfile
 
+        from .publish import exclusive_lock
+
         self.out = Path(outdir)
         parent = check_output_dir(self.out, record_name)
+        self._lock_path = parent / f".{self.out.name}.cm2cl-lock"
+        self._lock = exclusive_lock(self._lock_path, f"output '{self.out}': another run is writing it; wait for "
+                                                     "it or choose another folder")
         for old in parent.glob(f".{self.out.name}.old-*"):
             pid = old.name.rsplit("-", 1)[-1]
             if pid.isdigit() and not alive(int(pid)):
@@ -120,4 +125,11 @@ class StagedOutput:
     def __exit__(self, *exc):
         if self.dir.exists():
             shutil.rmtree(self.dir, ignore_errors=True)
+        if self._lock is not None:
+            try:
+                self._lock_path.unlink()
+            except OSError:
+                pass
+            os.close(self._lock)
+            self._lock = None
         return False
