@@ -477,3 +477,25 @@ def test_simulate_cli_refuses_a_huge_scene_and_leaves_nothing(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "can be generated" in err and len(err.strip().splitlines()) == 1
     assert _listing(tmp_path) == ["huge.toml"]
+
+
+@pytest.mark.parametrize("shape", [(1, 32), (32, 1), (1, 1, 32), (2, 1, 32), (1, 4, 5), (3, 4, 5)])
+def test_header_shapes_are_the_decoded_shapes(tmp_path, shape):
+    """The header check saw (32,) for a one-row image, so a one-row measurement was refused as "not a 2D
+    image" and a (2, 1, 32) PSF taken for one plane: peek_tiff now gives read_tiff's shape, plain or OME."""
+    a = np.ones(shape, np.float32)
+    tifffile.imwrite(tmp_path / "plain.tif", a, photometric="minisblack")
+    io.write_tiff(tmp_path / "ome.ome.tif", a)
+    for name in ("plain.tif", "ome.ome.tif"):
+        assert io.peek_tiff(tmp_path / name) == (shape, np.dtype(np.float32))
+        assert io.read_tiff(tmp_path / name)[0].shape == shape
+
+
+def test_a_one_row_sensor_reconstructs(rt, tmp_path):
+    rng = np.random.default_rng(4)
+    tifffile.imwrite(tmp_path / "psf.tif", rng.random((2, 1, 32)).astype(np.float32), photometric="minisblack")
+    tifffile.imwrite(tmp_path / "meas.tif", rng.random((1, 32)).astype(np.float32))
+    out = tmp_path / "v.ome.tif"
+    assert main(["reconstruct", str(tmp_path / "meas.tif"), "--psf", str(tmp_path / "psf.tif"), "-o", str(out),
+                 "--max-iter", "2", "--quiet"]) == 0
+    assert io.read_tiff(out)[0].shape == (2, 1, 32)
