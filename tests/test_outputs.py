@@ -499,3 +499,28 @@ def test_a_one_row_sensor_reconstructs(rt, tmp_path):
     assert main(["reconstruct", str(tmp_path / "meas.tif"), "--psf", str(tmp_path / "psf.tif"), "-o", str(out),
                  "--max-iter", "2", "--quiet"]) == 0
     assert io.read_tiff(out)[0].shape == (2, 1, 32)
+
+
+# ---- found by the property tests --------------------------------------------------------------------------
+
+@pytest.mark.parametrize("case, msg", [
+    ("nan_psf", "psf '{d}/psf.tif': contains NaN/Inf values"),
+    ("tiny_auto_offset", "measurement '{d}/meas.tif': offset 'auto' averages pixels [5:15, 5:15], which an image "
+                         "of shape (4, 4) does not have"),
+])
+def test_bad_inputs_found_by_the_property_tests_are_refused_in_one_line(rt, tmp_path, capsys, case, msg):
+    """A NaN in the PSF reached the hot-pixel check (a ValueError traceback); 'auto' on an image smaller than
+    the dark corner averaged nothing and the NaN offset was reported as NaN in the measurement."""
+    rng = np.random.default_rng(5)
+    y, psf = rng.random((4, 4)).astype(np.float32), rng.random((1, 4, 4)).astype(np.float32)
+    extra = []
+    if case == "nan_psf":
+        psf[0, 1, 2] = np.nan
+    else:
+        extra = ["--offset", "auto"]
+    tifffile.imwrite(tmp_path / "meas.tif", y)
+    tifffile.imwrite(tmp_path / "psf.tif", psf, photometric="minisblack")
+    assert main(_argv(tmp_path, 2, *extra)) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and msg.format(d=tmp_path) in err[0]
+    assert _listing(tmp_path) == []

@@ -158,7 +158,7 @@ def _volume_geometry(args, pmeta, bin_factor: int):
 
 def command(args) -> int:
     from .. import io
-    from ..io.prepare import prepare
+    from ..io.prepare import check_image, prepare
     from ..solver import reconstruct
 
     out = Path(args.output)
@@ -198,6 +198,8 @@ def command(args) -> int:
         raise InputError(f"measurement '{args.measurement}': expected a 2D image, got shape {meas.shape}")
     if psf.ndim not in (2, 3):
         raise InputError(f"psf '{args.psf}': expected a (nz, My, Mx) stack, got shape {psf.shape}")
+    check_image(meas, f"measurement '{args.measurement}'")    # numeric and finite before anything reads them
+    check_image(psf, f"psf '{args.psf}'")
     vs, depths, how = _volume_geometry(args, pmeta, args.bin)
     from ..analysis.pixels import check_pixels, mask_weights
     from ..io.prepare import bin_image
