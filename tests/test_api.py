@@ -123,3 +123,16 @@ def test_out_of_range_api_arguments_are_refused(rt, kw, msg):
     psf, _, y = bead_problem(7)
     with pytest.raises(InputError, match=msg):
         cm2cl.reconstruct(y, psf, max_iter=2, **kw)
+
+
+def test_parameters_keep_the_checked_values_not_the_given_ones(rt):
+    """Issue 8 item 16: tv_iters=2.0 passed the whole-number check, then range(2.0) raised a TypeError in the
+    TV loop; the checked values (2, plain floats) are what the solver gets."""
+    from cm2cl.solver.params import ADMMParams
+    from test_admm import bead_problem
+
+    p = ADMMParams(tv_iters=2.0, max_iter=np.int64(3), l1=np.float32(1e-3))
+    assert type(p.tv_iters) is int and type(p.max_iter) is int and type(p.l1) is float and p.l1 == pytest.approx(1e-3)
+    psf, _, y = bead_problem(7)
+    rec = cm2cl.reconstruct(y, psf, tv_iters=2.0, max_iter=3.0, tol=0)
+    assert rec.iterations == 3 and np.all(np.isfinite(rec.volume))

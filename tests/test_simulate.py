@@ -372,7 +372,7 @@ def test_interrupted_simulation_leaves_no_complete_output(tmp_path, monkeypatch)
             raise OSError("disk full")
         return write_tiff(*a, **k)
     monkeypatch.setattr(io, "write_tiff", failing)
-    with pytest.raises(OSError):
+    with pytest.raises(InputError, match=r"writing failed \(disk full\); nothing was written$"):
         sim.simulate(scene([bead()]), tmp_path / "out", seed=0)
     assert list(tmp_path.iterdir()) == []
 

@@ -47,16 +47,27 @@ def command(args) -> int:
 def demo(outdir="cm2cl-demo", *, device=None, seed=None, max_iter: int = RECON["max_iter"],
          verbose: bool = True) -> dict:
     """Run the demo; returns its summary (also written to OUTDIR/demo.json)."""
-    from .. import analysis
-    from ..io import OBJECT_SPACE, StagedOutput, check_output_dir, write_tiff
-    from ..simulate import load_scene, simulate_scene, write_simulation
-    from ..solver import reconstruct
+    from ..io import StagedOutput
 
     say = print if verbose else (lambda *a, **k: None)
     if max_iter < 1:
         raise InputError(f"--iterations: must be >= 1, got {max_iter}")
     out = Path(outdir)
-    check_output_dir(out, "demo.json", expected_bytes=8 << 20)   # the demo writes about 5 MB
+    # checked and locked before any work, swapped in whole at the end (demo.json last)
+    with StagedOutput(out, "demo.json", expected_bytes=8 << 20) as stage:   # the demo writes about 5 MB
+        summary = _run(stage, device, seed, max_iter, say)
+    say(f"  total {summary['seconds']['total']:.1f} s; wrote {out}/: simulation/, reconstruction.ome.tif, "
+        "mip_reconstruction.png, mip_ground_truth.png, reconstruction_log.csv, demo.json")
+    return summary
+
+
+def _run(stage, device, seed, max_iter, say) -> dict:
+    """Simulate, reconstruct, score, and write the outputs into ``stage`` (published last)."""
+    from .. import analysis
+    from ..io import OBJECT_SPACE, write_tiff
+    from ..simulate import load_scene, simulate_scene, write_simulation
+    from ..solver import reconstruct
+
     t0 = time.perf_counter()
 
     scene = load_scene(SCENE)
@@ -123,25 +134,20 @@ def demo(outdir="cm2cl-demo", *, device=None, seed=None, max_iter: int = RECON["
         say(f"  axial error:   mean {ax.mean():+.1f} um, RMS {m['axial_rms_um']:.1f} um, max {np.abs(ax).max():.1f} um "
             f"(plane spacing {dz:.0f} um)")
 
-    # outputs: build next to OUTDIR, move in at the end, demo.json last
-    with StagedOutput(out, "demo.json") as stage:
-        tmp = stage.dir
-        write_simulation(sim, tmp / "simulation")
-        write_tiff(tmp / "reconstruction.ome.tif", vol.astype(np.float32), voxel_size_um=rec.voxel_size_um,
-                   depths_um=rec.depths_um,
-                   extra={"kind": "reconstruction", "scene": scene.name, "voxel_space": OBJECT_SPACE,
-                          "params": params, "scaling": rec.scaling})
-        title = f"{scene.name}: reconstruction ({m['n_matched']}/{m['n_true']} beads matched)"
-        region = analysis.content_region(sim.ground_truth, margin=12)
-        analysis.mip_png(vol, tmp / "mip_reconstruction.png", sim.voxel_size_um, sim.depths_um, title=title,
-                         gamma=0.6, region=region)
-        analysis.mip_png(sim.ground_truth, tmp / "mip_ground_truth.png", sim.voxel_size_um, sim.depths_um,
-                         title=f"{scene.name}: ground truth", gamma=0.6, region=region)
-        rec.write_log(tmp / "reconstruction_log.csv")
-        summary["seconds"]["total"] = time.perf_counter() - t0
-        names = ["simulation", "reconstruction.ome.tif", "reconstruction_log.csv", "mip_reconstruction.png",
-                 "mip_ground_truth.png"]
-        stage.publish(names, "demo.json", json.dumps(summary, indent=2))
-    say(f"  total {summary['seconds']['total']:.1f} s; wrote {out}/: simulation/, reconstruction.ome.tif, "
-        "mip_reconstruction.png, mip_ground_truth.png, reconstruction_log.csv, demo.json")
+    # outputs: built in the staging folder, swapped in for OUTDIR at the end, demo.json last
+    tmp = stage.dir
+    write_simulation(sim, tmp / "simulation")
+    write_tiff(tmp / "reconstruction.ome.tif", vol.astype(np.float32), voxel_size_um=rec.voxel_size_um,
+               depths_um=rec.depths_um,
+               extra={"kind": "reconstruction", "scene": scene.name, "voxel_space": OBJECT_SPACE,
+                      "params": params, "scaling": rec.scaling})
+    title = f"{scene.name}: reconstruction ({m['n_matched']}/{m['n_true']} beads matched)"
+    region = analysis.content_region(sim.ground_truth, margin=12)
+    analysis.mip_png(vol, tmp / "mip_reconstruction.png", sim.voxel_size_um, sim.depths_um, title=title,
+                     gamma=0.6, region=region)
+    analysis.mip_png(sim.ground_truth, tmp / "mip_ground_truth.png", sim.voxel_size_um, sim.depths_um,
+                     title=f"{scene.name}: ground truth", gamma=0.6, region=region)
+    rec.write_log(tmp / "reconstruction_log.csv")
+    summary["seconds"]["total"] = time.perf_counter() - t0
+    stage.publish("demo.json", json.dumps(summary, indent=2))
     return summary

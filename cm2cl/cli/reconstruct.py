@@ -9,7 +9,6 @@ Depths come from the PSF's plane positions (OME ``Plane PositionZ``) when it has
 
 from __future__ import annotations
 
-import os
 import sys
 from pathlib import Path
 
@@ -19,6 +18,8 @@ from ..errors import InputError
 from ..solver.params import PENALTY_POLICIES, PRESETS, ADMMParams
 
 _DEFAULTS = ADMMParams()
+#: --save-background writes the removed background beside the output, as a member of its unit
+BACKGROUND_SUFFIX = ".background.ome.tif"
 
 
 def register(sub):
@@ -164,7 +165,7 @@ def _volume_geometry(args, pmeta, bin_factor: int):
 
 def command(args) -> int:
     from .. import io
-    from ..io.prepare import prepare
+    from ..io.prepare import check_image, prepare
     from ..solver import reconstruct
 
     out = Path(args.output)
@@ -180,13 +181,11 @@ def command(args) -> int:
     args.measurement = args.measurement[0]
     if out.suffix.lower() not in (".tif", ".tiff"):
         raise InputError(f"--output '{out}': must end in .ome.tif, .tif or .tiff (or .ome.zarr for a series)")
-    if out.is_dir():
-        raise InputError(f"--output '{out}': is a directory; give a file name (e.g. {out / 'volume.ome.tif'})")
-    if not out.parent.exists():
-        raise InputError(f"--output '{out}': folder '{out.parent}' does not exist")
-    for src in (args.measurement, args.psf):
-        if Path(src).exists() and out.resolve() == Path(src).resolve():
-            raise InputError(f"--output '{out}': would overwrite the input '{src}'")
+    from ..io.publish import OutputSet, check_output_file
+
+    extras = {"background": BACKGROUND_SUFFIX} if args.save_background else None
+    check_output_file(out, 0, (args.measurement, args.psf), extras=extras)   # before any work; creates nothing
+    off, psf_off = _offset(args.offset), _offset(args.psf_offset, "--psf-offset")
     if args.bin < 1:
         raise InputError(f"--bin: must be an integer >= 1, got {args.bin}")
     if args.background:
@@ -208,9 +207,10 @@ def command(args) -> int:
         raise InputError(f"measurement '{args.measurement}': expected a 2D image, got shape {meas.shape}")
     if psf.ndim not in (2, 3):
         raise InputError(f"psf '{args.psf}': expected a (nz, My, Mx) stack, got shape {psf.shape}")
+    check_image(meas, f"measurement '{args.measurement}'")    # numeric and finite before anything reads them
+    check_image(psf, f"psf '{args.psf}'")
     psf_bin = psf_binning(args, psf.shape, meas.shape)
     vs, depths, how = _volume_geometry(args, pmeta, psf_bin)
-    off, psf_off = _offset(args.offset), _offset(args.psf_offset, "--psf-offset")
     from ..analysis.pixels import check_pixels, mask_weights
     from ..io.prepare import bin_image
 
@@ -238,32 +238,26 @@ def command(args) -> int:
              if v is not None}
     params.update({**PRESETS[args.preset or "balanced"], **given})
     # the output is checked (writable, room, sidecars, no other run on it) and locked before the solve
-    from ..io.publish import OutputSet
-
     planes, ny, nx = h.shape
     vol_bytes = planes * (2 * ny * 2 * nx if args.padded else ny * nx) * dt.itemsize
-    outset = OutputSet(out, expected_bytes=vol_bytes, inputs=(args.measurement, args.psf))
+    outset = OutputSet(out, expected_bytes=vol_bytes, inputs=(args.measurement, args.psf), extras=extras)
     progress = Progress(params.get("max_iter", _DEFAULTS.max_iter), args.quiet)
-    try:
-        with outset:
-            try:
-                rec = reconstruct(y, h, dtype=dt, backend=args.backend, device=args.device, weights=weights,
-                                  padding=args.padding,
-                                  callback=progress, voxel_size_um=vs, depths_um=depths, **params)
-            finally:
-                progress.close()
-            rec.info["pixels"] = {**pixels, "masked": names}
-            rec.info["background"] = args.background
-            rec.info["psf_fit"] = fit_note
-            vol = _write(args, out, outset, rec, dt, how)
-            if background is not None and args.save_background:
-                bg_out = io.tiff_stem(out).with_name(io.tiff_stem(out).name + ".background.ome.tif")
-                io.write_tiff(bg_out, background.astype(np.float32),
-                              voxel_size_um=mmeta.get("voxel_size_um") if mmeta.get("unit") == "um" else None,
-                              extra={"what": "background removed from the measurement", "method": args.background,
-                                     "measurement": str(args.measurement)})
-    except OSError as exc:   # a full disk or a vanished folder while writing: nothing is left behind
-        raise InputError(f"--output '{out}': writing failed ({exc.strerror or exc}); nothing was written") from exc
+    with outset:   # an OSError while writing becomes one line; nothing is left behind
+        try:
+            rec = reconstruct(y, h, dtype=dt, backend=args.backend, device=args.device, weights=weights,
+                              padding=args.padding,
+                              callback=progress, voxel_size_um=vs, depths_um=depths, **params)
+        finally:
+            progress.close()
+        rec.info["pixels"] = {**pixels, "masked": names}
+        rec.info["background"] = args.background
+        rec.info["psf_fit"] = fit_note
+        if background is not None and args.save_background:   # a member of the published unit
+            io.write_tiff(outset.staged("background"), background.astype(np.float32),
+                          voxel_size_um=mmeta.get("voxel_size_um") if mmeta.get("unit") == "um" else None,
+                          extra={"what": "background removed from the measurement", "method": args.background,
+                                 "measurement": str(args.measurement)})
+        vol = _write(args, out, outset, rec, dt, how)
     _report(out, outset, rec, how, vol)
     return 0
 
@@ -362,8 +356,8 @@ def _write(args, out, outset, rec, dt, how):
     io.write_tiff(outset.staged("volume"), vol, voxel_size_um=rec.voxel_size_um, depths_um=rec.depths_um,
                   extra=extra)
     rec.write_log(outset.staged("log"), fmt="csv")
-    rec.write_log(outset.staged("record"), fmt="json", extra={"output": out.name})
-    outset.publish()   # the old sidecars, then the volume, then the new sidecars: never two runs mixed
+    rec.write_log(outset.staged("record"), fmt="json", extra=outset.record_fields())
+    outset.publish()   # committed, then the old sidecars, the volume, the new sidecars: never two runs mixed
     return vol
 
 

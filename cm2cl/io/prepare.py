@@ -23,10 +23,30 @@ def bin_image(a, factor: int, name: str = "image") -> np.ndarray:
     return a.reshape(a.shape[:-2] + (ny, f, nx, f)).sum(axis=(-3, -1))
 
 
-def estimate_offset(img, region=(slice(5, 15), slice(5, 15))) -> float:
-    """Camera offset (dark level) as the mean of a dark corner of the image (last two axes)."""
+#: the dark corner ``offset='auto'`` averages: pixels [5:15, 5:15]
+DARK_REGION = (slice(5, 15), slice(5, 15))
+
+
+def estimate_offset(img, region=DARK_REGION, name: str = "image") -> float:
+    """Camera offset (dark level) as the mean of a dark corner of the image (last two axes); an
+    InputError when the image has no pixel there."""
     img = np.asarray(img, np.float64)
-    return float(img[(Ellipsis,) + tuple(region)].mean())
+    corner = img[(Ellipsis,) + tuple(region)]
+    if corner.size == 0:
+        rows, cols = (f"{r.start}:{r.stop}" for r in region)
+        raise InputError(f"{name}: offset 'auto' averages pixels [{rows}, {cols}], which an image of shape "
+                         f"{img.shape} does not have; give the offset as a number")
+    return float(corner.mean())
+
+
+def check_image(img, name: str = "image") -> np.ndarray:
+    """Camera data as read: a numeric dtype and finite values (InputError naming ``name`` otherwise)."""
+    img = np.asarray(img)
+    if img.dtype.kind not in "uif":
+        raise InputError(f"{name}: dtype {img.dtype} is not numeric")
+    if img.dtype.kind == "f" and not np.isfinite(img).all():
+        raise InputError(f"{name}: contains NaN/Inf values")
+    return img
 
 
 def subtract_offset(img, offset: float, clip: bool = True) -> np.ndarray:
@@ -37,13 +57,9 @@ def subtract_offset(img, offset: float, clip: bool = True) -> np.ndarray:
 def prepare(img, *, offset="auto", bin_factor: int = 1, name: str = "image") -> np.ndarray:
     """Offset subtraction (``'auto'``: the mean of pixels [5:15, 5:15]; a number; or None)
     followed by binning. Returns float64 >= 0."""
-    img = np.asarray(img)
-    if img.dtype.kind not in "uif":
-        raise InputError(f"{name}: dtype {img.dtype} is not numeric")
-    if img.dtype.kind == "f" and not np.isfinite(img).all():
-        raise InputError(f"{name}: contains NaN/Inf values")
+    img = check_image(img, name)
     if offset == "auto":
-        offset = estimate_offset(img)
+        offset = estimate_offset(img, name=name)
     out = subtract_offset(img, offset) if offset is not None else np.asarray(img, np.float64)
     return bin_image(out, bin_factor, name)
 

@@ -1,16 +1,43 @@
-"""Outputs that appear only when complete: output-folder checks, staged folders, JSON records."""
+"""Outputs that appear only when complete: checks of an output location, locks, fault points, and
+output folders staged beside their target and swapped in whole (:class:`StagedOutput`).
+
+- **Checked before any work** (:func:`check_output_dir`, :func:`check_room`): nothing is created by a
+  check; the nearest existing folder must be writable and have room for the planned bytes.
+- **One run per target**: an exclusive lock file ``.NAME.cm2cl-lock`` beside the target, taken before
+  the work and held until the end; a second run on the same target is refused.
+- **Unique staging**: ``.NAME.partial-PID-RANDOM`` beside the target; removed on any failure, and
+  staging left by a killed run is removed by the next run on the same target.
+- **Swapped in whole**: a previous folder and the new one are exchanged in one step
+  (``renameat2(RENAME_EXCHANGE)`` on Linux), so the target always holds a complete result, the previous
+  one or the new one. Where the filesystem cannot exchange, the previous folder is renamed aside first;
+  a run killed between the two renames leaves the target absent, never mixed, and the next run on the
+  target puts the previous result back before anything else.
+
+Fault points for tests: ``CM2CL_FAULT=<step>`` kills the process (SIGKILL) at that step,
+``CM2CL_FAULT=<step>:pause`` stops it there (SIGSTOP) so that a test can look at the files first.
+"""
 
 from __future__ import annotations
 
+import errno
+import fcntl
 import os
 import shutil
+import signal
+import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import InputError
 
-__all__ = ["jsonable", "check_output_dir", "StagedOutput"]
+__all__ = ["jsonable", "check_output_dir", "check_room", "StagedOutput", "fault_point", "exclusive_lock",
+           "release_lock", "exchange", "FAULT_ENV", "FOLDER_STEPS"]
+
+#: environment variable of the fault points (tests only)
+FAULT_ENV = "CM2CL_FAULT"
+#: the named steps of publishing a folder (:meth:`StagedOutput.publish`)
+FOLDER_STEPS = ("folder.staged", "folder.swapped")
 
 
 def jsonable(obj):
@@ -31,28 +58,14 @@ def jsonable(obj):
     return obj
 
 
-def check_output_dir(outdir, record_name: str | None = None, expected_bytes: int = 0) -> Path:
-    """The parent of an output folder, created if needed, checked before any work: an InputError if
-    ``outdir`` is a file, its parent is not writable or lacks room for ``expected_bytes``, or it is a
-    non-empty folder that is not a previous output of the same command (no ``record_name`` in it)."""
-    out = Path(outdir)
-    if out.exists() and not out.is_dir():
-        raise InputError(f"output '{out}': exists and is not a directory")
-    parent = out.resolve().parent
-    try:
-        parent.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise InputError(f"output '{out}': cannot create its parent directory ({exc})") from exc
-    if not os.access(parent, os.W_OK | os.X_OK):
-        raise InputError(f"output '{out}': folder '{parent}' is not writable")
-    free = shutil.disk_usage(parent).free
-    if expected_bytes and free < int(expected_bytes * 1.05) + (1 << 20):
-        raise InputError(f"output '{out}': {free / 2**20:.0f} MiB free in '{parent}', the output needs about "
-                         f"{expected_bytes / 2**20:.0f} MiB")
-    if record_name and out.is_dir() and any(out.iterdir()) and not (out / record_name).exists():
-        raise InputError(f"output '{out}': a non-empty folder that is not a previous output of this "
-                         f"command (no {record_name}); not replaced: choose a new or empty folder")
-    return parent
+def fault_point(name: str) -> None:
+    """Tests: ``CM2CL_FAULT=name`` kills this process here (SIGKILL, nothing cleaned up);
+    ``CM2CL_FAULT=name:pause`` stops it here (SIGSTOP) until the test looks and kills it."""
+    value = os.environ.get(FAULT_ENV)
+    if value == name:
+        os.kill(os.getpid(), signal.SIGKILL)
+    elif value == f"{name}:pause":
+        os.kill(os.getpid(), signal.SIGSTOP)
 
 
 def alive(pid: int) -> bool:
@@ -66,70 +79,202 @@ def alive(pid: int) -> bool:
     return True
 
 
+def exclusive_lock(path, refusal: str) -> int:
+    """An exclusive, non-blocking lock on the file ``path`` (created if needed): its descriptor, held
+    until :func:`release_lock` or close; an InputError saying ``refusal`` when another process holds it.
+    A holder that unlinks the file when done (:func:`release_lock`) may do so between our open and our
+    lock: the lock is then on a file nobody else sees, so it is taken again on the file at ``path``."""
+    path = Path(path)
+    while True:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as exc:
+            os.close(fd)
+            if exc.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+                raise InputError(refusal) from exc
+            raise
+        try:
+            same = os.stat(path).st_ino == os.fstat(fd).st_ino
+        except FileNotFoundError:
+            same = False
+        if same:
+            return fd
+        os.close(fd)
+
+
+def release_lock(fd: int, path) -> None:
+    """Remove the lock file while still holding it, then release: no lock file is left behind."""
+    try:
+        Path(path).unlink()
+    except OSError:
+        pass
+    os.close(fd)
+
+
+def exchange(a, b) -> bool:
+    """Swap the paths ``a`` and ``b`` in one atomic step (Linux ``renameat2(RENAME_EXCHANGE)``); False
+    where the system or the filesystem cannot (the caller falls back to two renames)."""
+    import ctypes
+
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        renameat2 = libc.renameat2
+    except (OSError, AttributeError):
+        return False
+    at_fdcwd, rename_exchange = -100, 2
+    if renameat2(at_fdcwd, os.fsencode(str(a)), at_fdcwd, os.fsencode(str(b)), rename_exchange) == 0:
+        return True
+    err = ctypes.get_errno()
+    if err in (errno.EINVAL, errno.ENOSYS, errno.EOPNOTSUPP, errno.EPERM):
+        return False
+    raise OSError(err, os.strerror(err), str(b))
+
+
+def _existing_ancestor(path: Path) -> Path:
+    p = path.absolute().parent
+    while not p.exists():
+        p = p.parent
+    return p
+
+
+def check_room(out, what: str, expected_bytes: int = 0) -> Path:
+    """The nearest existing folder above ``out``: an InputError if a file is in the way, if it is not
+    writable, or if its disk has no room for ``expected_bytes`` (plus 5% and 1 MiB). Creates nothing."""
+    folder = _existing_ancestor(Path(out))
+    if not folder.is_dir():
+        raise InputError(f"{what} '{out}': '{folder}' is a file, not a folder")
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise InputError(f"{what} '{out}': folder '{folder}' is not writable")
+    free = shutil.disk_usage(folder).free
+    need = int(expected_bytes * 1.05) + (1 << 20)
+    if expected_bytes and free < need:
+        raise InputError(f"{what} '{out}': {free / 2**20:.0f} MiB free in '{folder}', the output needs about "
+                         f"{need / 2**20:.0f} MiB")
+    return folder
+
+
+def check_output_dir(outdir, record_name: str | None = None, expected_bytes: int = 0, what: str = "output") -> Path:
+    """Check an output folder before any work, creating nothing: an InputError if ``outdir`` is a file,
+    the nearest existing folder above it is not writable or lacks room for ``expected_bytes``, or it is a
+    non-empty folder that is not a previous output of the same command (no ``record_name`` in it).
+    Returns the nearest existing folder."""
+    out = Path(outdir)
+    if out.exists() and not out.is_dir():
+        raise InputError(f"{what} '{out}': exists and is not a directory")
+    folder = check_room(out, what, expected_bytes)
+    if record_name and out.is_dir() and any(out.iterdir()) and not (out / record_name).exists():
+        raise InputError(f"{what} '{out}': a non-empty folder that is not a previous output of this "
+                         f"command (no {record_name}); not replaced: choose a new or empty folder")
+    return folder
+
+
+def _make_parents(folder: Path) -> list[Path]:
+    """Create ``folder`` and its missing parents; the ones created, deepest first."""
+    missing = []
+    p = folder.absolute()
+    while not p.exists():
+        missing.append(p)
+        p = p.parent
+    folder.mkdir(parents=True, exist_ok=True)
+    return missing
+
+
+def _remove_empty(folders) -> None:
+    for d in folders:
+        try:
+            d.rmdir()
+        except OSError:
+            break
+
+
 class StagedOutput:
-    """Build a folder of outputs beside ``outdir`` and publish it whole when complete.
+    """An output folder built beside ``outdir`` and swapped in whole when complete.
 
-    ``with StagedOutput(outdir, record_name) as stage:`` gives ``stage.dir`` (a temporary folder next to
-    ``outdir``) to write into; ``stage.publish(names, record_name, text)`` writes the JSON record into it
-    and swaps it in for ``outdir``: the previous folder is renamed aside, the new one renamed into place,
-    then the previous one removed. A reader or an interrupted run never finds new files beside old ones;
-    a previous complete result is replaced only by a complete one. An existing non-empty ``outdir`` is
-    accepted only when it holds ``record_name`` (it is a previous output of the same command), checked
-    before any work; other folders are refused, not replaced. Staging folders left by killed runs are
-    removed by the next run on the same output.
-    """
+    ``with StagedOutput(outdir, record_name, expected_bytes) as stage:`` checks the target before any
+    work (:func:`check_output_dir`), locks it against other runs, and gives ``stage.dir`` (a unique folder
+    beside ``outdir``) to write into; ``stage.publish(record_name, text)`` writes the record there last
+    and swaps the folder in for ``outdir``. Enter it before the long work: the lock is held from the
+    check to the publication. On any failure nothing is left: the staging folder, the lock file and the
+    parent folders this run created are removed; an ``OSError`` while writing becomes an InputError."""
 
-    def __init__(self, outdir, record_name: str | None = None):
-        import tempfile
-
-        from .publish import exclusive_lock
-
+    def __init__(self, outdir, record_name: str | None = None, expected_bytes: int = 0, what: str = "output"):
         self.out = Path(outdir)
-        parent = check_output_dir(self.out, record_name)
-        self._lock_path = parent / f".{self.out.name}.cm2cl-lock"
-        self._lock = exclusive_lock(self._lock_path, f"output '{self.out}': another run is writing it; wait for "
-                                                     "it or choose another folder")
+        self.what = what
+        self.record_name = record_name
+        check_output_dir(self.out, record_name, expected_bytes, what)
+        parent = self.out.absolute().parent
+        self._lock = None
+        self.dir = None
+        self.published = False
+        try:
+            self._created = _make_parents(parent)
+        except OSError as exc:
+            raise InputError(f"{what} '{self.out}': cannot create its folder ({exc.strerror})") from exc
+        try:
+            self._lock_path = parent / f".{self.out.name}.cm2cl-lock"
+            self._lock = exclusive_lock(self._lock_path, f"{what} '{self.out}': another run is writing it; "
+                                                         "wait for it or choose another output")
+            self._recover(parent)
+            check_output_dir(self.out, record_name, 0, what)    # again, after a killed run's result came back
+            self.dir = Path(tempfile.mkdtemp(prefix=f".{self.out.name}.partial-{os.getpid()}-", dir=parent))
+            umask = os.umask(0)
+            os.umask(umask)
+            os.chmod(self.dir, 0o777 & ~umask)  # mkdtemp makes it private; the result is a normal folder
+        except BaseException as exc:
+            self.close()
+            if isinstance(exc, OSError):
+                raise InputError(f"{what} '{self.out}': cannot write beside it ({exc.strerror})") from exc
+            raise
+
+    def _recover(self, parent: Path) -> None:
+        """Under the lock: what killed runs left beside the target. A previous result renamed aside (the
+        two-rename fallback) comes back if the target is absent; staging folders are removed."""
         for old in parent.glob(f".{self.out.name}.old-*"):
             pid = old.name.rsplit("-", 1)[-1]
             if pid.isdigit() and not alive(int(pid)):
                 if not self.out.exists():
-                    os.replace(old, self.out)   # a run killed mid-swap: the previous result comes back
+                    os.replace(old, self.out)
                 else:
                     shutil.rmtree(old, ignore_errors=True)
         for stale in parent.glob(f".{self.out.name}.partial-*"):
             pid = stale.name.rsplit("-", 2)[-2] if stale.name.count("-") >= 2 else ""
             if pid.isdigit() and not alive(int(pid)):
                 shutil.rmtree(stale, ignore_errors=True)
-        self.dir = Path(tempfile.mkdtemp(prefix=f".{self.out.name}.partial-{os.getpid()}-", dir=parent))
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(self.dir, 0o777 & ~umask)  # mkdtemp makes it private; the result is a normal folder
 
-    def publish(self, names, record_name: str, text: str):
+    def publish(self, record_name: str, text: str) -> None:
+        """Write the record (last file), then swap the staged folder in for the target."""
         out, tmp = self.out, self.dir
         (tmp / record_name).write_text(text)
+        fault_point("folder.staged")
         if not out.exists():
+            os.rename(tmp, out)
+        elif exchange(tmp, out):          # the target now holds the new result, tmp the previous one
+            fault_point("folder.swapped")
+            shutil.rmtree(tmp, ignore_errors=True)
+        else:                             # no atomic exchange here: absent for a moment, never mixed
+            old = out.with_name(f".{out.name}.old-{os.getpid()}")
+            os.replace(out, old)
+            fault_point("folder.old_moved_aside")
             os.replace(tmp, out)
-            return
-        old = out.with_name(f".{out.name}.old-{os.getpid()}")
-        os.replace(out, old)          # from here the target is absent, never mixed
-        from .publish import fault_point
+            shutil.rmtree(old, ignore_errors=True)
+        self.published = True
 
-        fault_point("swap.old_moved_aside")
-        os.replace(tmp, out)
-        shutil.rmtree(old, ignore_errors=True)
+    def close(self) -> None:
+        if self.dir is not None and self.dir.exists():
+            shutil.rmtree(self.dir, ignore_errors=True)
+        if self._lock is not None:
+            release_lock(self._lock, self._lock_path)
+            self._lock = None
+        if not self.published:
+            _remove_empty(self._created)
 
     def __enter__(self):
         return self
 
-    def __exit__(self, *exc):
-        if self.dir.exists():
-            shutil.rmtree(self.dir, ignore_errors=True)
-        if self._lock is not None:
-            try:
-                self._lock_path.unlink()
-            except OSError:
-                pass
-            os.close(self._lock)
-            self._lock = None
+    def __exit__(self, kind, exc, tb):
+        self.close()
+        if isinstance(exc, OSError):      # a full disk or a vanished folder while writing
+            raise InputError(f"{self.what} '{self.out}': writing failed ({exc.strerror or exc}); nothing was "
+                             "written" + (", the previous result is kept" if self.out.exists() else "")) from exc
         return False

@@ -182,10 +182,24 @@ def _existing_file(path) -> Path:
     return path
 
 
+def _recorded_shape(path, ome: str | None, shape: tuple) -> tuple:
+    """The shape :func:`read_tiff` gives an array that tifffile reads as ``shape``: the shape a cm2cl
+    record stored in the OME-XML (tifffile drops the axes of length 1 of OME files: one plane, one-pixel
+    wide volumes), else ``shape`` itself."""
+    if not ome:
+        return shape
+    try:
+        record = _ome_geometry(ome, len(shape))[2]
+    except ET.ParseError as exc:
+        raise InputError(f"'{path}': its OME-XML is not readable ({exc})") from exc
+    stored = tuple(int(n) for n in (record or {}).get("shape") or ())
+    return stored if stored and int(np.prod(stored)) == int(np.prod(shape)) else shape
+
+
 def peek_tiff(path) -> tuple[tuple, np.dtype]:
     """(shape, dtype) of a TIFF's first series from its headers, without decoding any pixel: lets a
-    command refuse a wrong or huge input before reading it. Axes of length 1 are dropped, as
-    :func:`read_tiff` drops them for files without a cm2cl record."""
+    command refuse a wrong or huge input before reading it. The shape is the one :func:`read_tiff`
+    returns."""
     import tifffile
 
     path = _existing_file(path)
@@ -193,9 +207,10 @@ def peek_tiff(path) -> tuple[tuple, np.dtype]:
         with tifffile.TiffFile(path) as tf:
             s = tf.series[0]
             shape, dtype = tuple(int(n) for n in s.shape), np.dtype(s.dtype)
+            ome = tf.ome_metadata if tf.is_ome else None
     except (tifffile.TiffFileError, ValueError, OSError, IndexError) as exc:
         raise InputError(f"'{path}': not a readable TIFF file ({exc})") from exc
-    return tuple(n for n in shape if n != 1) or (1,), dtype
+    return _recorded_shape(path, ome, shape), dtype
 
 
 def read_tiff(path):
@@ -225,15 +240,8 @@ def read_tiff(path):
     except (tifffile.TiffFileError, ValueError, OSError) as exc:
         raise InputError(f"'{path}': not a readable TIFF file ({exc})") from exc
     if ome:
-        try:
-            vs, depths, record = _ome_geometry(ome, arr.ndim)
-            shape = tuple((record or {}).get("shape") or ())
-            if shape and arr.shape != shape and int(np.prod(shape)) == arr.size:
-                # tifffile drops axes of length 1 (one plane, one-pixel-wide volumes): restore them
-                arr = arr.reshape(shape)
-                vs, depths, record = _ome_geometry(ome, arr.ndim)
-        except ET.ParseError as exc:
-            raise InputError(f"'{path}': its OME-XML is not readable ({exc})") from exc
+        arr = arr.reshape(_recorded_shape(path, ome, arr.shape))   # axes of length 1 that tifffile dropped
+        vs, depths, record = _ome_geometry(ome, arr.ndim)
         extra = (record or {}).get("extra") or {}
         return arr, {"voxel_size_um": vs, "unit": "um" if vs else "pixel", "depths_um": depths, "extra": extra}
     record = None

@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ..io.staging import StagedOutput, check_output_dir, jsonable
+from ..io.staging import StagedOutput, jsonable
 from ..io.tiff import OBJECT_SPACE
 from . import effects as _effects
 from .objects import Beads, generate
@@ -274,23 +274,29 @@ def simulate(scene, outdir, seed: int | None = None, device=None) -> dict:
     ``axis-0..2`` columns, object position in um) and ``simulation.json`` (the record: scene with
     defaults, seed, effects applied, render path, timings) into ``outdir``.
 
-    Files are written into a temporary directory beside ``outdir`` and moved in at the end, the
-    JSON record last, so an interrupted run never leaves output that looks complete.
-    Returns the record (as written to simulation.json)."""
+    The output folder is checked and locked before the (long) run, the files are written into a staging
+    folder beside ``outdir``, the JSON record last, and the folder is swapped in whole
+    (:class:`cm2cl.io.staging.StagedOutput`): an interrupted run never leaves output that looks complete,
+    nor new files beside a previous result. Returns the record (as written to simulation.json)."""
     scene = load_scene(scene)
     planes, (my, mx) = len(scene.depths_um), scene.optics.shape
     out_bytes = 4 * my * mx * (2 * planes + 1)       # measurement, PSF stack and ground truth (float32)
-    check_output_dir(outdir, "simulation.json", expected_bytes=out_bytes)  # before the (long) run
-    return write_simulation(simulate_scene(scene, seed, device), outdir)
+    with StagedOutput(outdir, "simulation.json", expected_bytes=out_bytes) as stage:
+        return publish_simulation(simulate_scene(scene, seed, device), stage)
 
 
 def write_simulation(result: SimulationResult, outdir) -> dict:
     """Write a :class:`SimulationResult` into ``outdir`` as :func:`simulate` does; returns the record."""
     with StagedOutput(outdir, "simulation.json") as stage:
-        files = _write_outputs(result, result.scene, stage.dir)
-        record = dict(result.record)
-        record["files"] = files
-        record["cm2cl_version"] = __import__("cm2cl").__version__
-        text = json.dumps(jsonable(record), indent=2)
-        stage.publish(list(files.values()), "simulation.json", text)
+        return publish_simulation(result, stage)
+
+
+def publish_simulation(result: SimulationResult, stage: StagedOutput) -> dict:
+    """Write the outputs into ``stage.dir`` and publish them with the record last; returns the record."""
+    files = _write_outputs(result, result.scene, stage.dir)
+    record = dict(result.record)
+    record["files"] = files
+    record["cm2cl_version"] = __import__("cm2cl").__version__
+    text = json.dumps(jsonable(record), indent=2)
+    stage.publish("simulation.json", text)
     return json.loads(text)

@@ -91,7 +91,9 @@ class ADMMParams:
     normalize: bool = True
 
     def __post_init__(self):
-        Checker().fields(self, _SPECS)
+        # the checked values replace the given ones: 2.0 iterations become 2, numpy scalars plain numbers
+        for name, value in Checker().fields(self, _SPECS).items():
+            object.__setattr__(self, name, value)
 
     @classmethod
     def from_kwargs(cls, **kw) -> "ADMMParams":
