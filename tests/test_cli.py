@@ -39,9 +39,9 @@ def test_reconstruct_writes_volume_and_log(rt, tmp_path, capsys):
 
 def test_reconstruct_bad_input_writes_nothing(rt, tmp_path, capsys):
     meas, psf = _files(tmp_path)
-    tifffile.imwrite(tmp_path / "small.tif", np.ones((32, 30), np.uint16))
+    tifffile.imwrite(tmp_path / "stack.tif", np.ones((2, 32, 40), np.uint16))
     cases = [
-        (["reconstruct", str(tmp_path / "small.tif"), "--psf", str(psf)], "does not match the PSF"),
+        (["reconstruct", str(tmp_path / "stack.tif"), "--psf", str(psf)], "expected a 2D image, got shape (2, 32, 40)"),
         (["reconstruct", str(meas), "--psf", str(psf), "--tv", "-1"], "tv: must be >= 0, got -1.0"),
         (["reconstruct", str(tmp_path / "nope.tif"), "--psf", str(psf)], "no such file"),
         (["reconstruct", str(meas), "--psf", str(psf), "--offset", "dark"], "--offset: expected"),

@@ -157,7 +157,7 @@ def _volume_geometry(args, pmeta, bin_factor: int):
 
 def command(args) -> int:
     from .. import io
-    from ..io.prepare import prepare
+    from ..io.prepare import prepare, prepare_psf
     from ..solver import reconstruct
 
     out = Path(args.output)
@@ -217,7 +217,11 @@ def command(args) -> int:
         corrected, background = remove_background(meas, parse_background(args.background, px_um), args.device)
         meas = corrected
     y = prepare(meas, offset=off, bin_factor=args.bin, name=f"measurement '{args.measurement}'")
-    h = prepare(psf, offset=psf_off, bin_factor=args.bin, name=f"psf '{args.psf}'")
+    # a PSF of another lateral size (a cropped scan): zeros / crop, its optical axis on the sensor's centre
+    h, fitted = prepare_psf(psf, meas.shape, offset=psf_off, bin_factor=args.bin,
+                            axis=pmeta["extra"].get("axis_pixel"), name=f"psf '{args.psf}'")
+    if fitted:
+        print(f"{fitted} (the measurement's size)")
     h = h[None] if h.ndim == 2 else h
     if y.shape != h.shape[1:]:
         raise InputError(f"measurement '{args.measurement}': shape {y.shape} does not match the PSF "
@@ -246,6 +250,7 @@ def command(args) -> int:
             finally:
                 progress.close()
             rec.info["pixels"] = {**pixels, "masked": names}
+            rec.info["psf_fit"] = fitted
             rec.info["background"] = args.background
             vol = _write(args, out, outset, rec, dt, how)
             if background is not None and args.save_background:
@@ -276,9 +281,6 @@ def _check_headers(args) -> None:
         raise InputError(f"psf '{args.psf}': expected a (nz, My, Mx) stack, got shape {ps}")
     if min(ms) < args.bin:
         raise InputError(f"measurement '{args.measurement}': shape {ms} is smaller than the bin factor {args.bin}")
-    if ms != ps[-2:]:
-        raise InputError(f"measurement '{args.measurement}': shape {ms} does not match the PSF '{args.psf}' "
-                         f"sensor grid {ps[-2:]}")
     need = 8 * (int(np.prod(ms)) + int(np.prod(ps))) * 2      # decoded as float64, plus a prepared copy
     have = host_available_bytes()
     if have and need > have:

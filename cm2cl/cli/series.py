@@ -47,7 +47,7 @@ def command(args) -> int:
     """Run the job described by reconstruct's arguments; one summary line on stdout."""
     from .. import io
     from ..device import get_runtime
-    from ..io.prepare import prepare
+    from ..io.prepare import prepare, prepare_psf
     from ..jobs import FrameSeries, FrameStore, run_series
     from ..jobs.run import fingerprint
     from ..solver.params import PRESETS, ADMMParams
@@ -61,7 +61,10 @@ def command(args) -> int:
     if psf.ndim not in (2, 3):
         raise InputError(f"psf '{args.psf}': expected a (nz, My, Mx) stack, got shape {psf.shape}")
     off, psf_off = _offset(args.offset), _offset(args.psf_offset, "--psf-offset")
-    h = prepare(psf, offset=psf_off, bin_factor=args.bin, name=f"psf '{args.psf}'")
+    h, fitted = prepare_psf(psf, series.shape, offset=psf_off, bin_factor=args.bin,
+                            axis=pmeta["extra"].get("axis_pixel"), name=f"psf '{args.psf}'")
+    if fitted:
+        print(f"{fitted} (the frames' size)")
     h = h[None] if h.ndim == 2 else h
     sensor = tuple(n // args.bin for n in series.shape)
     if sensor != h.shape[1:]:
