@@ -39,9 +39,11 @@ def test_reconstruct_writes_volume_and_log(rt, tmp_path, capsys):
 
 def test_reconstruct_bad_input_writes_nothing(rt, tmp_path, capsys):
     meas, psf = _files(tmp_path)
+    tifffile.imwrite(tmp_path / "stack.tif", np.ones((2, 32, 40), np.uint16))
     tifffile.imwrite(tmp_path / "small.tif", np.ones((32, 30), np.uint16))
     cases = [
         (["reconstruct", str(tmp_path / "small.tif"), "--psf", str(psf), "--bin", "64"], "smaller than the bin"),
+        (["reconstruct", str(tmp_path / "stack.tif"), "--psf", str(psf)], "expected a 2D image, got shape (2, 32, 40)"),
         (["reconstruct", str(meas), "--psf", str(psf), "--tv", "-1"], "tv: must be >= 0, got -1.0"),
         (["reconstruct", str(tmp_path / "nope.tif"), "--psf", str(psf)], "no such file"),
         (["reconstruct", str(meas), "--psf", str(psf), "--offset", "dark"], "--offset: expected"),
@@ -171,7 +173,7 @@ def test_a_psf_of_another_lateral_size_is_centred_on_the_sensor(rt, tmp_path, ca
     assert main(["reconstruct", str(tmp_path / "meas.tif"), "--psf", str(tmp_path / "psf.tif"), "-o", str(out),
                  "--max-iter", "10", "--quiet"]) == 0
     err = capsys.readouterr().err
-    assert "zero-padded 28 -> 32 rows, zero-padded 34 -> 40 columns, centred" in err
+    assert "28 x 34 pixels fitted to 32 x 40 (4 rows of zeros added, 6 columns of zeros added)" in err
     vol, _ = io.read_tiff(out)
     fitted = np.pad(small, ((0, 0), (2, 2), (3, 3))).astype(np.float32)
     ref = cm2cl.reconstruct(y.astype(np.float32), fitted, max_iter=10)
@@ -180,7 +182,7 @@ def test_a_psf_of_another_lateral_size_is_centred_on_the_sensor(rt, tmp_path, ca
     tifffile.imwrite(tmp_path / "wide.tif", wide.astype(np.float32), photometric="minisblack")
     assert main(["reconstruct", str(tmp_path / "meas.tif"), "--psf", str(tmp_path / "wide.tif"), "-o",
                  str(tmp_path / "w.ome.tif"), "--max-iter", "2", "--quiet"]) == 0
-    assert "cropped 38 -> 32 rows, cropped 42 -> 40 columns" in capsys.readouterr().err
+    assert "38 x 42 pixels fitted to 32 x 40 (6 rows cropped, 2 columns cropped)" in capsys.readouterr().err
 
 
 def test_dry_run_plans_from_the_headers_and_writes_nothing(rt, tmp_path, capsys, monkeypatch):

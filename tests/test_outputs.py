@@ -426,18 +426,18 @@ def test_a_one_pixel_wide_reconstruction_reads_back_with_its_shape(rt, tmp_path,
 
 def test_inputs_are_checked_from_their_headers_before_decoding(rt, tmp_path, capsys, monkeypatch):
     """Issue 8 item 14: a small compressed TIFF that decodes to a huge image was decoded (8 GB, 33 s) before
-    "shape does not match"; now shapes and the memory they need come from the headers (a PSF of another
-    size would be centred on that sensor, and the problem cannot fit the device)."""
+    "shape does not match"; now shapes and the memory they need come from the headers. (A PSF of another
+    lateral size is now padded or cropped (issue 12 item 4), so a wrong shape here is a 3D measurement.)"""
     meas, psf = _files(tmp_path)
     big = tmp_path / "big.tif"
-    tifffile.imwrite(big, np.zeros((6000, 6000), np.uint8), compression="zlib")
+    tifffile.imwrite(big, np.zeros((2, 6000, 3000), np.uint8), compression="zlib")
     assert big.stat().st_size < 1e6
     decoded = []
     real = io.read_tiff
     monkeypatch.setattr(io, "read_tiff", lambda p: decoded.append(p) or real(p))
     out = tmp_path / "v.ome.tif"
     assert main(["reconstruct", str(big), "--psf", str(psf), "-o", str(out), "--quiet"]) == 2
-    assert "problem too large for device" in capsys.readouterr().err   # from the headers: 6000 x 6000 x 4 planes
+    assert "expected a 2D image, got shape (2, 6000, 3000)" in capsys.readouterr().err
     monkeypatch.setattr("cm2cl.solver.memory.host_available_bytes", lambda: 1000)
     assert main(["reconstruct", str(meas), "--psf", str(psf), "-o", str(out), "--quiet"]) == 2
     assert "of host memory" in capsys.readouterr().err

@@ -227,7 +227,7 @@ def command(args) -> int:
         corrected, background = remove_background(meas, parse_background(args.background, px_um), args.device)
         meas = corrected
     y = prepare(meas, offset=off, bin_factor=args.bin, name=f"measurement '{args.measurement}'")
-    h, fit_note = psf_on_working_grid(args, psf, psf_off, psf_bin, y.shape)
+    h, fit_note = psf_on_working_grid(args, psf, psf_off, psf_bin, meas.shape, pmeta["extra"].get("axis_pixel"))
     if depths is not None and len(depths) != h.shape[0]:
         raise InputError(f"psf '{args.psf}': {len(depths)} plane positions for {h.shape[0]} planes")
     dt = np.dtype(args.dtype)
@@ -272,14 +272,16 @@ def psf_binning(args, psf_shape, meas_shape) -> int:
     return args.bin
 
 
-def psf_on_working_grid(args, psf, psf_off, psf_bin, working):
-    """(h (nz, My, Mx) float64, note): the PSF offset, binned and centred on the working grid (zero-padded
-    or cropped when its lateral size differs), with the note said on stderr."""
-    from ..io.prepare import fit_psf_to_sensor, prepare
+def psf_on_working_grid(args, psf, psf_off, psf_bin, sensor, axis=None):
+    """(h (nz, My, Mx) float64, note): the PSF offset, fitted (zero-padded or cropped, its optical axis
+    ``axis`` on the centre: :func:`cm2cl.io.prepare.fit_lateral`) to the measurement's grid at its own
+    pixel (the unbinned ``sensor``, or the binned one for a PSF already binned), then binned; the note
+    is said on stderr."""
+    from ..io.prepare import prepare_psf
 
-    h = prepare(psf, offset=psf_off, bin_factor=psf_bin, name=f"psf '{args.psf}'")
+    target = sensor if psf_bin == args.bin else tuple(n // args.bin for n in sensor)
+    h, note = prepare_psf(psf, target, offset=psf_off, bin_factor=psf_bin, axis=axis, name=f"psf '{args.psf}'")
     h = h[None] if h.ndim == 2 else h
-    h, note = fit_psf_to_sensor(h, working, f"psf '{args.psf}'")
     if note:
         print(f"cm2cl: note: {note}", file=sys.stderr)
     return h, note

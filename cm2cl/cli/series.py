@@ -65,7 +65,7 @@ def command(args) -> int:
         raise InputError(f"measurement: frames of shape {series.shape} are smaller than the bin factor {args.bin}")
     sensor = tuple(n // args.bin for n in series.shape)
     psf_bin = psf_binning(args, psf.shape, series.shape)
-    h, _ = psf_on_working_grid(args, psf, psf_off, psf_bin, sensor)
+    h, _ = psf_on_working_grid(args, psf, psf_off, psf_bin, series.shape, pmeta["extra"].get("axis_pixel"))
     vs, depths, how = _volume_geometry(args, pmeta, psf_bin)
     devices = devices_arg(args.device) if not args.scheduler else [None]
     if args.scheduler:

@@ -64,28 +64,53 @@ def prepare(img, *, offset="auto", bin_factor: int = 1, name: str = "image") -> 
     return bin_image(out, bin_factor, name)
 
 
-def fit_psf_to_sensor(psf, sensor_shape, name: str = "psf"):
-    """(psf, note): a PSF stack (nz, Py, Px) brought to the sensor's (My, Mx), centred on the array's
-    optical axis (the array centre): cropped where larger (a scan wider than the sensor), zero-padded where
-    smaller (a cropped calibration scan: no light is assumed outside it). ``note`` says what was done
-    (None when the sizes already match)."""
-    h = np.asarray(psf)
-    sensor = tuple(int(n) for n in sensor_shape)
-    if h.shape[-2:] == sensor:
-        return h, None
-    out = h
-    done = []
-    for axis, (p, m) in enumerate(zip(h.shape[-2:], sensor)):
-        ax = h.ndim - 2 + axis
-        if p > m:
-            start = (p - m) // 2
-            out = np.take(out, np.arange(start, start + m), axis=ax)
-            done.append(f"cropped {p} -> {m} {'rows' if axis == 0 else 'columns'}")
-        elif p < m:
-            before = (m - p) // 2
-            pad = [(0, 0)] * out.ndim
-            pad[ax] = (before, m - p - before)
-            out = np.pad(out, pad)
-            done.append(f"zero-padded {p} -> {m} {'rows' if axis == 0 else 'columns'}")
-    return out, (f"{name}: lateral size {h.shape[-2:]} differs from the measurement's {sensor}: "
-                 + ", ".join(done) + ", centred on the array centre")
+def fit_lateral(a, shape, axis=None, name: str = "psf"):
+    """The last two axes of ``a`` padded with zeros and/or cropped to ``shape`` (rows, cols), so that its
+    optical axis, pixel ``axis`` (row, col; default its centre (H // 2, W // 2)), lands on the centre
+    (rows // 2, cols // 2) of the result: the rule for a PSF whose lateral size differs from the sensor's
+    (a cropped calibration scan, a larger stack). Whole pixels, nothing resampled.
+
+    Returns (array float64, info): ``info`` has ``from``, ``to``, ``axis``, ``offset`` (rows, cols added
+    before the first row / column; negative: cropped), ``light_cut`` (fraction of the total |a| cut off)
+    and ``message`` (one line: what was done), or ``message`` None when the shapes already agree."""
+    a = np.asarray(a, np.float64)
+    src = tuple(int(n) for n in a.shape[-2:])
+    dst = tuple(int(n) for n in shape)
+    if len(dst) != 2 or min(dst) < 1:
+        raise InputError(f"{name}: the target lateral shape must be two positive sizes, got {shape!r}")
+    ax = (src[0] // 2, src[1] // 2) if axis is None else tuple(int(round(float(v))) for v in axis)
+    if len(ax) != 2 or not (0 <= ax[0] < src[0] and 0 <= ax[1] < src[1]):
+        raise InputError(f"{name}: optical axis {axis!r} (row, col) is outside its {src[0]} x {src[1]} pixels")
+    off = (dst[0] // 2 - ax[0], dst[1] // 2 - ax[1])
+    info = {"from": list(src), "to": list(dst), "axis": list(ax), "offset": list(off), "light_cut": 0.0,
+            "message": None}
+    if src == dst and off == (0, 0):
+        return a, info
+    out = np.zeros(a.shape[:-2] + dst)
+    r0, r1 = max(0, off[0]), min(dst[0], src[0] + off[0])
+    c0, c1 = max(0, off[1]), min(dst[1], src[1] + off[1])
+    if r1 > r0 and c1 > c0:
+        out[..., r0:r1, c0:c1] = a[..., r0 - off[0]:r1 - off[0], c0 - off[1]:c1 - off[1]]
+    total = float(np.abs(a).sum())
+    cut = 1.0 - float(np.abs(out).sum()) / total if total > 0 else 0.0
+    kinds = []
+    for what, n_src, n_dst, o in (("rows", src[0], dst[0], off[0]), ("columns", src[1], dst[1], off[1])):
+        added, dropped = max(0, o) + max(0, n_dst - n_src - o), max(0, -o) + max(0, n_src + o - n_dst)
+        if added:
+            kinds.append(f"{added} {what} of zeros added")
+        if dropped:
+            kinds.append(f"{dropped} {what} cropped")
+    info["light_cut"] = max(0.0, cut)
+    info["message"] = (f"{name}: {src[0]} x {src[1]} pixels fitted to {dst[0]} x {dst[1]} ({', '.join(kinds)}), its "
+                       f"optical axis pixel ({ax[0]}, {ax[1]}) on the centre ({dst[0] // 2}, {dst[1] // 2})"
+                       + (f"; {info['light_cut']:.2%} of its light cut off" if info["light_cut"] > 0 else ""))
+    return out, info
+
+
+def prepare_psf(psf, sensor_shape, *, offset=None, bin_factor: int = 1, axis=None, name: str = "psf"):
+    """A PSF stack on a measurement's grid: its offset subtracted (before any padding, so that 'auto'
+    reads the PSF's own corner), fitted to ``sensor_shape`` (unbinned) by :func:`fit_lateral` when its
+    lateral size differs, then binned. Returns (h float64, message: what the fit did, or None)."""
+    h = prepare(psf, offset=offset, name=name)
+    h, info = fit_lateral(h, sensor_shape, axis, name)
+    return bin_image(h, bin_factor, name), info["message"]

@@ -30,7 +30,7 @@ import numpy as np
 from ..errors import InputError
 from .staging import jsonable
 
-__all__ = ["write_tiff", "read_tiff", "tiff_stem", "OBJECT_SPACE"]
+__all__ = ["write_tiff", "read_tiff", "tiff_stem", "tiff_depths", "OBJECT_SPACE"]
 
 _KEY = "cm2cl"
 #: ``extra["voxel_space"]`` of a PSF stack whose voxel size is that of the object-space reconstruction
@@ -211,6 +211,26 @@ def peek_tiff(path) -> tuple[tuple, np.dtype]:
     except (tifffile.TiffFileError, ValueError, OSError, IndexError) as exc:
         raise InputError(f"'{path}': not a readable TIFF file ({exc})") from exc
     return _recorded_shape(path, ome, shape), dtype
+
+
+def tiff_depths(path):
+    """The z positions (um) of a multi-plane TIFF's planes from its headers (OME ``Plane PositionZ``), or
+    None when it carries none; no pixel is decoded."""
+    import tifffile
+
+    path = _existing_file(path)
+    try:
+        with tifffile.TiffFile(path) as tf:
+            ome = tf.ome_metadata if tf.is_ome else None
+            ndim = len(tf.series[0].shape)
+    except (tifffile.TiffFileError, ValueError, OSError, IndexError) as exc:
+        raise InputError(f"'{path}': not a readable TIFF file ({exc})") from exc
+    if not ome:
+        return None
+    try:
+        return _ome_geometry(ome, ndim)[1]
+    except ET.ParseError as exc:
+        raise InputError(f"'{path}': its OME-XML is not readable ({exc})") from exc
 
 
 def read_tiff(path):

@@ -24,24 +24,24 @@ class Frame:
     dtype: str
 
 
-def _expand(source: str) -> list[Path]:
+def _expand(source: str, what: str = "measurement") -> list[Path]:
     p = Path(source)
     if any(c in source for c in "*?["):
         files = sorted(Path(f) for f in _glob.glob(source) if f.lower().endswith(_TIFF))
         if not files:
-            raise InputError(f"measurement '{source}': the pattern matches no TIFF file")
+            raise InputError(f"{what} '{source}': the pattern matches no TIFF file")
         return files
     if p.is_dir():
         files = sorted(f for f in p.iterdir() if f.suffix.lower() in _TIFF)
         if not files:
-            raise InputError(f"measurement '{source}': the folder holds no .tif/.tiff file")
+            raise InputError(f"{what} '{source}': the folder holds no .tif/.tiff file")
         return files
     if not p.exists():
-        raise InputError(f"measurement '{source}': no such file")
+        raise InputError(f"{what} '{source}': no such file")
     return [p]
 
 
-def _frames_of(path: Path) -> list[Frame]:
+def _frames_of(path: Path, what: str = "measurement") -> list[Frame]:
     import tifffile
 
     try:
@@ -49,34 +49,35 @@ def _frames_of(path: Path) -> list[Frame]:
             s = t.series[0]
             shape, dtype = tuple(int(n) for n in s.shape), np.dtype(s.dtype)
     except Exception as exc:  # noqa: BLE001 - any unreadable file gets one line
-        raise InputError(f"measurement '{path}': not a readable TIFF ({exc})") from exc
+        raise InputError(f"{what} '{path}': not a readable TIFF ({exc})") from exc
     shape = tuple(n for n in shape if n != 1) if len(shape) > 3 else shape
     if dtype.kind not in "uif":
-        raise InputError(f"measurement '{path}': dtype {dtype} is not numeric")
+        raise InputError(f"{what} '{path}': dtype {dtype} is not numeric")
     if len(shape) == 2:
         return [Frame(str(path), 0, shape, dtype.str)]
     if len(shape) == 3:
         return [Frame(str(path), i, shape[1:], dtype.str) for i in range(shape[0])]
-    raise InputError(f"measurement '{path}': expected 2D frames or a (T, My, Mx) series, got shape {shape}")
+    raise InputError(f"{what} '{path}': expected 2D frames or a (T, My, Mx) series, got shape {shape}")
 
 
 class FrameSeries:
-    """The frames of ``sources`` (files, folders, globs), in order, all of one shape."""
+    """The frames of ``sources`` (files, folders, globs), in order, all of one shape; ``what`` names them in
+    errors ('measurement', 'scan')."""
 
-    def __init__(self, sources):
+    def __init__(self, sources, what: str = "measurement"):
         sources = [sources] if isinstance(sources, (str, Path)) else list(sources)
         if not sources:
-            raise InputError("measurement: no frames given")
+            raise InputError(f"{what}: no frames given")
         self.frames: list[Frame] = []
         for s in sources:
-            for f in _expand(str(s)):
-                self.frames.extend(_frames_of(f))
+            for f in _expand(str(s), what):
+                self.frames.extend(_frames_of(f, what))
         if not self.frames:
-            raise InputError(f"measurement: no frames in {', '.join(map(str, sources))}")
+            raise InputError(f"{what}: no frames in {', '.join(map(str, sources))}")
         first = self.frames[0]
         for f in self.frames[1:]:
             if f.shape != first.shape:
-                raise InputError(f"measurement '{f.path}' (frame {f.index}): shape {f.shape} differs from the "
+                raise InputError(f"{what} '{f.path}' (frame {f.index}): shape {f.shape} differs from the "
                                  f"first frame's {first.shape} ('{first.path}'); one job takes frames of one shape")
         self.shape = first.shape
 
