@@ -44,19 +44,19 @@ def test_x_step_solves_its_normal_equations(rt, dtype, backend, slabs):
     st = {k: rng.standard_normal((nz,) + P) for k in ("u", "eta", "w", "rho")}
     v, xi = rng.standard_normal(P), rng.standard_normal(P)
     for k, a in st.items():
-        getattr(s, k).set(a)
-    s.v.set(v[None])
-    s.xi.set(xi[None])
+        s.set_volume(k, a)
+    s.set_plane("v", v)
+    s.set_plane("xi", xi)
     mu_v, mu_u, mu_w = 0.7, 1.3, 0.4
     s.x_step(mu_v, mu_u, mu_w)
-    x = s.g.get().astype(np.float64)
+    x = s.get_volume("g").astype(np.float64)
     rhs = ref.correlate_spatial(psf, mu_v * v - xi) + (mu_u * st["u"] - st["eta"]) + (mu_w * st["w"] - st["rho"])
     Hx = ref.convolve_spatial(psf, x)
     lhs = mu_v * ref.correlate_spatial(psf, Hx) + (mu_u + mu_w) * x
     tol = 2e-6 if dtype == np.float32 else 1e-13
     assert np.linalg.norm(lhs - rhs) / np.linalg.norm(rhs) < tol
     # and H x comes out of the same step
-    hx = s.hx.get()[0]
+    hx = s.get_plane("hx")[0]
     assert np.linalg.norm(hx - Hx) / np.linalg.norm(Hx) < 10 * tol
 
 
@@ -174,9 +174,17 @@ def test_bad_inputs(rt, monkeypatch):
     monkeypatch.setattr(rt, "caps", fake)
     with pytest.raises(DeviceError, match="float64 requested but device .* has no fp64 support"):
         reconstruct(y, psf, dtype=np.float64)
+    # 1 MiB of device memory: the 4 planes do not fit resident, so they are streamed in slabs; kept
+    # resident on request that is refused; 256 KiB do not hold even one streamed plane
     small = device.Capabilities(**{**rt.caps.__dict__, "global_mem": 2**20})
     monkeypatch.setattr(rt, "caps", small)
-    with pytest.raises(DeviceError, match=r"problem too large for device .* 4 planes on a 64 x 80 padded grid need .* GiB.* planes fit"):
+    with pytest.raises(DeviceError, match=r"problem too large to keep on the device: 4 planes on a 64 x 80 padded grid need .* GiB per device"):
+        reconstruct(y32, psf32, padded_shape=(64, 80), stream=False)
+    rec = reconstruct(y32, psf32, padded_shape=(64, 80), max_iter=2)
+    assert rec.info["layout"][0]["streamed"] and rec.info["device_bytes"] <= 0.9 * 2**20
+    tiny = device.Capabilities(**{**rt.caps.__dict__, "global_mem": 2**18})
+    monkeypatch.setattr(rt, "caps", tiny)
+    with pytest.raises(DeviceError, match=r"problem too large even streamed: one depth plane of a 64 x 80 padded grid needs [\d.]+ MiB"):
         reconstruct(y32, psf32, padded_shape=(64, 80))
 
 
@@ -187,7 +195,8 @@ def test_both_reduction_layouts_match_the_reference(rt, contiguous):
     psf, _, y = bead_problem(8)
     kw = dict(l1=1e-3, tv=1e-3, max_iter=12, tol=0)
     s = ADMMSolver(psf.astype(np.float32), ADMMParams(**kw), padded_shape=(64, 80), max_slab_planes=3)
-    s.contiguous = np.int32(contiguous)
+    for part in s.parts:
+        part.contiguous = np.int32(contiguous)
     r1 = s.solve(y.astype(np.float32))
     r0 = ref.admm(y, psf, padded_shape=(64, 80), **kw)
     np.testing.assert_allclose(r1.log_array("objective"), r0.log_array("objective"), rtol=1e-5)

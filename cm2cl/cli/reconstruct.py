@@ -9,6 +9,7 @@ Depths come from the PSF's plane positions (OME ``Plane PositionZ``) when it has
 
 from __future__ import annotations
 
+import argparse
 import sys
 from pathlib import Path
 
@@ -16,6 +17,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..solver.params import PENALTY_POLICIES, PRESETS, ADMMParams
+from .series import devices_arg
 
 _DEFAULTS = ADMMParams()
 #: --save-background writes the removed background beside the output, as a member of its unit
@@ -66,8 +68,16 @@ def register(sub):
                         "dropped); single frames")
     g.add_argument("--backend", default="auto", help="FFT backend: auto, cl, vkfft, reikna")
     g.add_argument("--device", default=None,
-                   help="device index or name fragment (see cm2cl devices); for a series also 'all' or '0,2' "
-                        "(one worker per device)")
+                   help="device index or name fragment (see cm2cl devices), or 'all' / '0,2': a single frame "
+                        "spreads its depth planes over those devices, a series runs one worker per device")
+    g.add_argument("--max-memory", type=_size, default=None, metavar="SIZE",
+                   help="device memory each device may use, e.g. 4G or 512M (default 90%% of its memory); "
+                        "planes that do not fit are streamed in slabs from host memory")
+    g.add_argument("--host-memory", type=_size, default=None, metavar="SIZE",
+                   help="host memory the job may use (default: what the host has available)")
+    g.add_argument("--stream", choices=["auto", "always", "never"], default="auto",
+                   help="stream depth slabs through the device from host memory: when the planes do not fit "
+                        "(auto, default), always, or never (refuse a problem that does not fit)")
     g.add_argument("--scheduler", default=None,
                    help="series: run the frames on this Dask distributed scheduler (tcp://host:port) instead of "
                         "the local devices; pin each worker to a device with CM2CL_DEVICE")
@@ -102,6 +112,32 @@ def register(sub):
     g.add_argument("--quiet", action="store_true",
                    help="no progress bar (there is none either when stderr is not a terminal)")
     r.set_defaults(func=command)
+
+
+def _size(text: str) -> int:
+    """A byte count: a number with an optional binary unit K, M, G or T (4G = 4 * 2**30)."""
+    t = str(text).strip().upper().removesuffix("B").removesuffix("I")
+    mult = {"K": 2**10, "M": 2**20, "G": 2**30, "T": 2**40}.get(t[-1:], 1)
+    try:
+        value = float(t[:-1] if mult > 1 else t) * mult
+    except ValueError:
+        value = float("nan")
+    if not np.isfinite(value) or value <= 0:
+        raise argparse.ArgumentTypeError(f"expected a size such as 4G, 512M or 1000000, got {text!r}")
+    return int(value)
+
+
+_STREAM = {"auto": "auto", "always": True, "never": False}
+
+
+def _layout(args, nz, sensor, dt, backend):
+    """The planner's layout for a single frame (DeviceError when nothing fits) and the runtimes."""
+    from ..device import get_runtime
+    from ..solver.forward import choose_padded_shape
+    from ..solver.memory import plan_layout
+    rts = [get_runtime(d) for d in devices_arg(args.device)]
+    P = choose_padded_shape(sensor, backend)
+    return P, plan_layout(nz, P, dt, backend, rts, max_memory=args.max_memory, stream=_STREAM[args.stream])
 
 
 def _offset(text: str, option: str = "--offset"):
@@ -244,8 +280,10 @@ def command(args) -> int:
     progress = Progress(params.get("max_iter", _DEFAULTS.max_iter), args.quiet)
     with outset:   # an OSError while writing becomes one line; nothing is left behind
         try:
-            rec = reconstruct(y, h, dtype=dt, backend=args.backend, device=args.device, weights=weights,
-                              padding=args.padding,
+            devs = devices_arg(args.device)
+            rec = reconstruct(y, h, dtype=dt, backend=args.backend, device=devs[0],
+                              devices=devs if len(devs) > 1 else None, max_memory=args.max_memory,
+                              stream=_STREAM[args.stream], weights=weights, padding=args.padding,
                               callback=progress, voxel_size_um=vs, depths_um=depths, **params)
         finally:
             progress.close()
@@ -288,45 +326,60 @@ def psf_on_working_grid(args, psf, psf_off, psf_bin, sensor, axis=None):
 
 
 def _plan(args) -> int:
-    """``--dry-run``: what the solve would need, from the headers only; exit 0 when it fits, 2 when not."""
+    """``--dry-run``: the plan from the headers only (layout of the planes over the devices, device and
+    host memory, bytes moved per iteration); exit 0 when it fits, 2 when not."""
     from .. import io
     from ..device import get_runtime
     from ..device.fft import resolve_backend
-    from ..solver.forward import choose_padded_shape
-    from ..solver.memory import host_available_bytes, memory_estimate
+    from ..errors import DeviceError
+    from ..solver.memory import host_available_bytes, streamed_bytes_per_iteration
 
     (ms, mdt), (ps, pdt) = io.peek_tiff(args.measurement), io.peek_tiff(args.psf)
-    rt = get_runtime(args.device)
     dt = np.dtype(args.dtype)
-    backend = resolve_backend(args.backend, rt)
+    backend = resolve_backend(args.backend, get_runtime(devices_arg(args.device)[0]))
     sensor = tuple(n // args.bin for n in ms)
     nz = ps[0] if len(ps) == 3 else 1
-    P = choose_padded_shape(sensor, backend)
-    est = memory_estimate(nz, P, dt, backend)
-    host = 8 * 2 * (int(np.prod(ms)) + int(np.prod(ps)))
-    budget = int(rt.caps.global_mem * 0.9)
-    fits = est["total"] <= budget and host <= host_available_bytes()
-    print(f"plan: {nz} planes x {sensor[0]} x {sensor[1]} sensor ({ms[0]} x {ms[1]} binned {args.bin}x), padded "
-          f"{P[0]} x {P[1]} (2M - 1; --padding support may shrink it), {dt.name}, FFT {backend}")
-    print(f"  device {rt.caps.name}: {est['total'] / 2**30:.2f} GiB of {budget / 2**30:.2f} GiB usable "
-          f"({est['per_plane'] / 2**20:.1f} MiB per plane + {est['fixed'] / 2**20:.1f} MiB); "
-          f"{max(0, (budget - est['fixed']) // est['per_plane'])} planes fit")
-    print(f"  host: {host / 2**30:.2f} GiB to decode and prepare the inputs, "
-          f"{host_available_bytes() / 2**30:.1f} GiB available")
-    print(f"  output: {nz * int(np.prod(sensor)) * dt.itemsize / 2**20:.1f} MiB; "
-          + ("fits: run without --dry-run" if fits else "does NOT fit: bin the measurement, use fewer planes"))
+    decode = 8 * 2 * (int(np.prod(ms)) + int(np.prod(ps)))
+    host_cap = args.host_memory or host_available_bytes()
+    try:
+        P, layout = _layout(args, nz, sensor, dt, backend)
+        problem = None
+    except DeviceError as exc:
+        P, layout, problem = None, [], str(exc)
+    print(f"plan: {nz} planes x {sensor[0]} x {sensor[1]} sensor ({ms[0]} x {ms[1]} binned {args.bin}x)"
+          + (f", padded {P[0]} x {P[1]} (2M - 1; --padding support may shrink it)" if P else "")
+          + f", {dt.name}, FFT {backend}")
+    moved = 0
+    for lp in layout:
+        how = (f"streamed in slabs of {lp.slab_planes} planes from {lp.host_bytes / 2**30:.2f} GiB of host memory"
+               if lp.streamed else "resident")
+        if lp.streamed:
+            moved += streamed_bytes_per_iteration(lp.z1 - lp.z0, P, dt, backend, args.tv_iters)
+        print(f"  device {lp.rt.caps.name} (#{lp.rt.caps.index}): planes {lp.z0}..{lp.z1 - 1}, {how}; "
+              f"{lp.device_bytes / 2**30:.2f} GiB on the device")
+    host = decode + sum(lp.host_bytes for lp in layout)
+    fits = problem is None and host <= host_cap
+    print(f"  host: {host / 2**30:.2f} GiB (inputs decoded and prepared"
+          + (", streamed volumes" if moved else "") + f"), {host_cap / 2**30:.1f} GiB "
+          + ("allowed (--host-memory)" if args.host_memory else "available"))
+    if layout:
+        print(f"  moved between host and devices per iteration: {moved / 2**30:.2f} GiB")
+    if problem:
+        print(f"  does NOT fit: {problem}")
+    elif not fits:
+        print("  does NOT fit: the host memory is too small; bin the measurement or use fewer planes")
+    else:
+        print(f"  output: {nz * int(np.prod(sensor)) * dt.itemsize / 2**20:.1f} MiB; fits: run without --dry-run")
     return 0 if fits else 2
 
 
 def _check_headers(args) -> None:
     """Refuse, from the headers alone, inputs of the wrong shape and problems that cannot fit: the
-    host memory to decode them (float64) and the device memory of the solve."""
+    host memory to decode them (float64) and to hold streamed slabs, and the devices' memory."""
     from .. import io
     from ..device import get_runtime
     from ..device.fft import resolve_backend
-    from ..solver.forward import choose_padded_shape
-    from ..solver.memory import check_fits, host_available_bytes
-
+    from ..solver.memory import host_available_bytes
     (ms, mdt), (ps, pdt) = io.peek_tiff(args.measurement), io.peek_tiff(args.psf)
     if len(ms) != 2:
         raise InputError(f"measurement '{args.measurement}': expected a 2D image, got shape {ms}")
@@ -334,17 +387,20 @@ def _check_headers(args) -> None:
         raise InputError(f"psf '{args.psf}': expected a (nz, My, Mx) stack, got shape {ps}")
     if min(ms) < args.bin:
         raise InputError(f"measurement '{args.measurement}': shape {ms} is smaller than the bin factor {args.bin}")
-    need = 8 * (int(np.prod(ms)) + int(np.prod(ps))) * 2      # decoded as float64, plus a prepared copy
-    have = host_available_bytes()
-    if have and need > have:
-        raise InputError(f"measurement '{args.measurement}' and psf '{args.psf}': decoding them needs "
-                         f"{need / 2**30:.1f} GiB of host memory, {have / 2**30:.1f} GiB available")
-    rt = get_runtime(args.device)
+    rt = get_runtime(devices_arg(args.device)[0])
     dt = rt.check_dtype(np.dtype(args.dtype))
     backend = resolve_backend(args.backend, rt)
     sensor = tuple(n // args.bin for n in ms)
     nz = ps[0] if len(ps) == 3 else 1
-    check_fits(rt, nz, choose_padded_shape(sensor, backend), dt, backend)
+    _, layout = _layout(args, nz, sensor, dt, backend)
+    need = 8 * (int(np.prod(ms)) + int(np.prod(ps))) * 2      # decoded as float64, plus a prepared copy
+    streamed = sum(lp.host_bytes for lp in layout)
+    have = args.host_memory or host_available_bytes()
+    if have and need + streamed > have:
+        raise InputError(f"measurement '{args.measurement}' and psf '{args.psf}': decoding them"
+                         + (" and holding the streamed slabs" if streamed else "")
+                         + f" needs {(need + streamed) / 2**20:.1f} MiB of host memory, {have / 2**20:.1f} MiB "
+                         + ("allowed (--host-memory)" if args.host_memory else "available"))
 
 
 def _write(args, out, outset, rec, dt, how):
@@ -378,6 +434,16 @@ def _report(out, outset, rec, how, vol):
           f"measurement noise {info['noise_sigma']:.3g} of max y); "
           f"objective {last['objective']:.4e}, {last['seconds']:.1f} s on {info['device']}; "
           f"log: {outset.sidecars['log'].name}, {outset.sidecars['record'].name}")
+    lay = info.get("layout") or []
+    if len(lay) > 1 or any(p["streamed"] for p in lay):
+        import resource
+
+        rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024   # Linux: KiB
+        print("  planes: " + "; ".join(
+            f"{p['planes'][0]}..{p['planes'][1] - 1} on {p['device']}"
+            + (f" streamed in slabs of {p['slab_planes']}" if p["streamed"] else " resident") for p in lay)
+            + f"; {info['moved_bytes'] / 1e9:.2f} GB moved between host and devices, "
+              f"{info['device_bytes'] / 2**30:.2f} GiB on the devices, peak host RSS {rss / 2**30:.2f} GiB")
     px = info.get("pixels") or {}
     for name in ("saturated", "hot"):
         c = px.get(name, {}).get("count", 0)

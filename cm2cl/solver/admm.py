@@ -19,13 +19,13 @@ from .. import validate
 from ..device import kernels
 from ..device.runtime import get_runtime
 from ..errors import DeviceError, InputError
-from .forward import ForwardModel, choose_padded_shape, min_padded_shape
-from ..device.fft import get_plan, resolve_backend
+from .forward import centered_psf, choose_padded_shape, crop_offsets, min_padded_shape
+from ..device.fft import complex_dtype, get_plan, resolve_backend
 from .control import Control, ProblemScale
 from .params import ADMMParams
+from .parts import Part
 from .result import Reconstruction
-from ..device.volume import Volume
-from .memory import check_fits
+from .memory import memory_estimate, plan_layout
 
 # Slots of the per-iteration reduction buffer.
 # Slots of the per-iteration reduction buffer, in the order each fused kernel writes them.
@@ -67,10 +67,15 @@ def _padded_arg(padded_shape) -> tuple[int, int]:
 
 
 class ADMMSolver:
-    """Device state of one reconstruction problem (PSF stack + parameters)."""
+    """Device state of one reconstruction problem (PSF stack + parameters).
+
+    The depth planes are laid out by :func:`cm2cl.solver.memory.plan_layout` over ``devices`` (default:
+    ``device`` alone): resident when they fit the memory (``max_memory`` caps each device, for planning
+    and tests), else streamed in slabs from host memory (``stream``: 'auto', True or False). Every
+    layout computes the same iterates (:mod:`cm2cl.solver.parts`)."""
 
     def __init__(self, psf, params: ADMMParams, *, dtype=np.float32, backend="auto", device=None,
-                 padded_shape=None, max_slab_planes=None):
+                 padded_shape=None, max_slab_planes=None, devices=None, max_memory=None, stream="auto"):
         psf = validate.psf_stack(psf, "psf")
         # a first normalisation in float64 on the host, so that no input scale over- or underflows
         # in float32 on the device: sum_i (sum |h_i|)^2 bounds max_k sum_i |H_i(k)|^2 from above
@@ -80,9 +85,16 @@ class ADMMSolver:
             self.psf_prescale = 1.0 / np.sqrt(np.sum(np.abs(psf).reshape(psf.shape[0], -1).sum(axis=1) ** 2))
         psf = psf * self.psf_prescale
         self.p = params
-        self.rt = rt = get_runtime(device)
+        rts = [get_runtime(d) for d in (devices if devices else [device])]
+        self.rt = rt = rts[0]
         self.dtype = rt.check_dtype(dtype)
+        for other in rts[1:]:
+            other.check_dtype(dtype)
         self.backend = resolve_backend(backend, rt)
+        for other in rts[1:]:
+            if resolve_backend(backend, other) != self.backend:
+                raise InputError(f"devices: the FFT backend '{backend}' resolves differently across the devices "
+                                 "(their spectra must share one layout); name one backend, e.g. 'cl'")
         sensor = psf.shape[1:]
         P = _padded_arg(padded_shape) if padded_shape is not None else choose_padded_shape(sensor, self.backend)
         if max_slab_planes is not None and (isinstance(max_slab_planes, bool)
@@ -92,97 +104,174 @@ class ADMMSolver:
         need = min_padded_shape(sensor, psf)
         if any(p < max(n, m) for p, n, m in zip(P, need, sensor)):
             raise InputError(f"padded_shape: {P} is smaller than sensor + PSF support - 1 = {need}")
-        self.memory = check_fits(rt, psf.shape[0], P, self.dtype, self.backend)
-        self.model = m = ForwardModel(psf, dtype=self.dtype, backend=self.backend, device=rt,
-                                      padded_shape=P, max_slab_planes=max_slab_planes)
-        self.P, self.M, self.nz = m.padded_shape, m.sensor_shape, m.nz
-        k = lambda f, n: kernels.kernel(rt, f, n, self.dtype)  # noqa: E731
-        self.k = {n: k(f, n) for f, n in [
-            ("fft_conv.cl", "spectral_power"), ("xstep.cl", "rhs_volume"), ("xstep.cl", "rhs_plane"),
-            ("xstep.cl", "xstep_accumulate"), ("xstep.cl", "xstep_hx"), ("xstep.cl", "xstep_solve"),
-            ("splits.cl", "update_w"), ("splits.cl", "update_v"), ("tv.cl", "tv_residual"),
-            ("tv.cl", "tv_dual_step"), ("tv.cl", "tv_finish"), ("reduce.cl", "reduce_partials")]}
-        # reductions: each work-item walks contiguous elements on CPUs, interleaved on GPUs
-        self.contiguous = np.int32(rt.caps.kind == "CPU")
-        self.local = {n: kernels.work_group_size(rt, self.k[n])
-                      for n in ("update_w", "update_v", "tv_finish", "reduce_partials")}
-        # one partial sum per work-group of the largest launch, per slot
-        biggest = max([(z1 - z0) for z0, z1 in m.bounds] + [1]) * int(np.prod(m.padded_shape))
-        self.pstride = -(-biggest // (min(self.local.values()) * PER_ITEM))
+        self.P, self.M, self.nz = P, tuple(sensor), psf.shape[0]
+        self.layout = plan_layout(self.nz, P, self.dtype, self.backend, rts, max_memory=max_memory,
+                                  stream=stream, max_slab_planes=max_slab_planes)
+        self.memory = memory_estimate(self.nz, P, self.dtype, self.backend)
+        self.cdtype = complex_dtype(self.dtype)
+        spec_plane = get_plan(rt, P, 1, self.dtype, self.backend).spec_shape[1:]
+        self.nfreq = int(np.prod(spec_plane))
+        self.offsets = crop_offsets(self.M, P)
+        oy, ox = self.offsets
+        self.crop = (slice(oy, oy + self.M[0]), slice(ox, ox + self.M[1]))
+        self.parts = [Part(lp.rt, lp.z0, lp.z1, P, spec_plane, self.dtype, self.cdtype,
+                           slab_planes=lp.slab_planes, streamed=lp.streamed) for lp in self.layout]
+        names = [("fft_conv.cl", "spectral_power"), ("xstep.cl", "rhs_volume"), ("xstep.cl", "rhs_plane"),
+                 ("xstep.cl", "xstep_accumulate"), ("xstep.cl", "xstep_hx"), ("xstep.cl", "xstep_solve"),
+                 ("splits.cl", "update_w"), ("splits.cl", "update_v"), ("tv.cl", "tv_residual"),
+                 ("tv.cl", "tv_dual_step"), ("tv.cl", "tv_finish"), ("reduce.cl", "reduce_partials")]
+        for part in self.parts:
+            part.k = {n: kernels.kernel(part.rt, f, n, self.dtype) for f, n in names}
+            # reductions: each work-item walks contiguous elements on CPUs, interleaved on GPUs
+            part.contiguous = np.int32(part.rt.caps.kind == "CPU")
+            part.local = {n: kernels.work_group_size(part.rt, part.k[n])
+                          for n in ("update_w", "update_v", "tv_finish", "reduce_partials")}
+            # one partial sum per work-group of the largest launch, per slot
+            part.pstride = -(-part.max_planes * int(np.prod(P)) // (min(part.local.values()) * PER_ITEM))
+            part.partials = part.rt.zeros(NSLOTS * part.pstride, self.dtype)
+            part.out = part.rt.zeros(NSLOTS, self.dtype)
+            part.plan2d = get_plan(part.rt, P, 1, self.dtype, self.backend)
 
-        # ||H|| = 1 normalisation from the spectral power, computed on the device once.
-        self.hn2 = Volume(rt, [(0, 1)], m.spec_plane, self.dtype)
-        nf = np.uint64(m.nfreq)
-        for first, ((z0, z1), hs) in zip([1] + [0] * len(m.bounds), m.psf_spectra):
-            kernels.launch(rt, self.k["spectral_power"], (m.nfreq,), self.hn2.slabs[0].data, hs.data,
-                           np.int32(z1 - z0), nf, np.int32(first))
-        hmax = float(self.hn2.slabs[0].get().max())
+        # PSF spectra (computed on each part's device) and the ||H|| = 1 normalisation from the
+        # spectral power sum_i |H_i|^2, summed over the parts in float64.
+        hc = centered_psf(psf, P)
+        nf = np.uint64(self.nfreq)
+        for part in self.parts:
+            hn2 = part.planes["hn2"]
+            for j, n, a in part.slabs(writes=("hs",), scratch=("g",)):
+                z = part.z0 + part.bounds[j][0]
+                a["g"].set(np.ascontiguousarray(hc[z:z + n], self.dtype))
+                part.plan(n, self.backend).forward(a["g"], a["hs"])
+                kernels.launch(part.rt, part.k["spectral_power"], (self.nfreq,), hn2.data, a["hs"].data,
+                               np.int32(n), nf, np.int32(j == 0))
+        if len(self.parts) > 1:
+            total = np.sum([part.planes["hn2"].get().astype(np.float64) for part in self.parts], axis=0)
+            for part in self.parts:
+                part.planes["hn2"].set(total.astype(self.dtype))
+        hmax = float(self.parts[0].planes["hn2"].get().max())
         self.psf_scale = 1.0 / np.sqrt(hmax) if params.normalize else 1.0
         if params.normalize:
-            for hs in m.psf_spectra.slabs:
-                hs *= self.dtype.type(self.psf_scale)
-            self.hn2.slabs[0] *= self.dtype.type(self.psf_scale**2)
+            for part in self.parts:
+                part.scale("hs", self.psf_scale)
+                part.planes["hn2"] *= self.dtype.type(self.psf_scale**2)
         psf_n = psf * self.psf_scale  # the normalised stack the solver sees (float64, host)
         self.spectral_mean = float(np.sum(psf_n * psf_n))
         self.psf_scale *= self.psf_prescale  # the whole scale from the caller's PSF
-
-        vol = m.new_volume
-        self.x, self.g, self.u, self.w, self.eta, self.rho = (vol() for _ in range(6))
-        self.pd = [vol() for _ in range(3)]
-        self.spec = m.new_spectrum_volume()
-        plane = lambda: Volume(rt, [(0, 1)], self.P, self.dtype)  # noqa: E731
-        self.v, self.xi, self.hx, self.cty, self.cw, self.r = (plane() for _ in range(6))
-        splane = lambda: Volume(rt, [(0, 1)], m.spec_plane, m.cdtype)  # noqa: E731
-        self.R, self.S, self.comp = (splane() for _ in range(3))
-        self.partials = rt.zeros(NSLOTS * self.pstride, self.dtype)
-        self.out = rt.zeros(NSLOTS, self.dtype)
-        self.allocated_bytes = sum(a.nbytes for a in (
-            [m.psf_spectra, self.hn2, self.x, self.g, self.u, self.w, self.eta, self.rho, self.spec,
-             self.v, self.xi, self.hx, self.cty, self.cw, self.r, self.R, self.S, self.comp] + self.pd)) \
-            + self.partials.nbytes + self.out.nbytes
-        self._plan2d = get_plan(rt, self.P, 1, self.dtype, self.backend)
+        self.allocated_bytes = sum(part.device_bytes + part.partials.nbytes + part.out.nbytes
+                                   for part in self.parts)
+        self.host_bytes = sum(part.host_bytes for part in self.parts)
 
     # ---- launch helpers --------------------------------------------------------------------
-    def _ew(self, name, n, *args):
-        kernels.launch(self.rt, self.k[name], (int(n),), *args)
+    def _ew(self, part, name, n, *args):
+        kernels.launch(part.rt, part.k[name], (int(n),), *args)
 
-    def _grid(self, name, planes, *args):
+    def _grid(self, part, name, planes, *args):
         """Launch over a (nx, ny, planes) range: coordinates without divisions."""
-        kernels.launch(self.rt, self.k[name], (self.P[1], self.P[0], int(planes)), *args)
+        kernels.launch(part.rt, part.k[name], (self.P[1], self.P[0], int(planes)), *args)
 
-    def _red(self, name, n, slot, *args):
+    def _red(self, part, name, n, slot, *args):
         """Launch a fused update + reduction over n elements; its sums go to partials[slot...]."""
-        L = self.local[name]
+        L = part.local[name]
         groups = -(-int(n) // (L * PER_ITEM))
-        self.k[name](self.rt.queue, (groups * L,), (L,), *args, self.partials.data, np.int32(self.pstride),
+        part.k[name](part.rt.queue, (groups * L,), (L,), *args, part.partials.data, np.int32(part.pstride),
                      kernels.local_memory(L * self.dtype.itemsize), np.int32(slot), np.int32(PER_ITEM),
-                     self.contiguous)
+                     part.contiguous)
+
+    def _next(self, i, j, name):
+        """(array, has_next): the plane after slab j of part i, in part i's memory."""
+        part = self.parts[i]
+        if j + 1 < len(part.bounds):
+            return part.neighbour(name, j, "next")[0], True
+        if i + 1 < len(self.parts):
+            return part.load_halo("next", self.parts[i + 1].edge_plane(name, "first")), True
+        return None, False
+
+    def _prev(self, i, j, name):
+        """(array, planes, has_prev): the plane before slab j of part i, in part i's memory."""
+        part = self.parts[i]
+        if j > 0:
+            return (*part.neighbour(name, j, "prev"), True)
+        if i > 0:
+            return part.load_halo("prev", self.parts[i - 1].edge_plane(name, "last")), 1, True
+        return None, 1, False
+
+    def _each_slab(self, reads=(), writes=(), scratch=()):
+        """Every slab of every part: (part index, part, slab index, planes, arrays)."""
+        for i, part in enumerate(self.parts):
+            for j, n, a in part.slabs(reads, writes, scratch):
+                yield i, part, j, n, a
 
     def x_step(self, mu_v, mu_u, mu_w):
         """Solve (mu_v H^T H + (mu_u + mu_w) I) x = H^T (mu_v v - xi) + (mu_u u - eta) + (mu_w w - rho)
-        exactly: the solution goes to ``self.g`` and H x (padded plane) to ``self.hx``."""
-        m, R, I = self.model, self.dtype.type, np.int32  # noqa: E741
+        exactly: the solution goes to ``g`` and H x (padded plane) to part 0's ``hx``."""
+        R, I = self.dtype.type, np.int32  # noqa: E741
         ny, nx = self.P
-        nf = np.uint64(m.nfreq)
-        bounds = m.bounds
+        nf = np.uint64(self.nfreq)
         c = mu_u + mu_w
-        for (z0, z1), gs, us, es, ws, rs, ss in zip(bounds, self.g.slabs, self.u.slabs, self.eta.slabs,
-                                                    self.w.slabs, self.rho.slabs, self.spec.slabs):
-            self._ew("rhs_volume", gs.size, gs.data, us.data, es.data, ws.data, rs.data,
-                     R(mu_u), R(mu_w), np.uint64(gs.size))
-            m.plan(z1 - z0).forward(gs, ss)
-        self._ew("rhs_plane", ny * nx, self.r.slabs[0].data, self.v.slabs[0].data,
-                 self.xi.slabs[0].data, R(mu_v), np.uint64(ny * nx))
-        self._plan2d.forward(self.r.slabs[0], self.R.slabs[0])
-        for j, ((z0, z1), ss, hs) in enumerate(zip(bounds, self.spec.slabs, m.psf_spectra.slabs)):
-            self._ew("xstep_accumulate", m.nfreq, ss.data, hs.data, self.R.slabs[0].data,
-                     self.S.slabs[0].data, self.comp.slabs[0].data, I(z1 - z0), nf, I(j == 0))
-        self._ew("xstep_hx", m.nfreq, self.S.slabs[0].data, self.hn2.slabs[0].data, R(c), R(mu_v), nf)
-        for (z0, z1), ss, hs, gs in zip(bounds, self.spec.slabs, m.psf_spectra.slabs, self.g.slabs):
-            self._ew("xstep_solve", m.nfreq, ss.data, hs.data, self.S.slabs[0].data, R(c), R(mu_v),
-                     I(z1 - z0), nf)
-            m.plan(z1 - z0).inverse(ss, gs)
-        self._plan2d.inverse(self.S.slabs[0], self.hx.slabs[0])
+        p0 = self.parts[0].planes
+        self._ew(self.parts[0], "rhs_plane", ny * nx, p0["r"].data, p0["v"].data, p0["xi"].data, R(mu_v),
+                 np.uint64(ny * nx))
+        self.parts[0].plan2d.forward(p0["r"], p0["R"])
+        if len(self.parts) > 1:
+            Rh = p0["R"].get()
+            for part in self.parts[1:]:
+                part.planes["R"].set(Rh)
+        for i, part, j, n, a in self._each_slab(("u", "eta", "w", "rho", "hs"), ("spec",), ("g",)):
+            pl = part.planes
+            self._ew(part, "rhs_volume", a["g"].size, a["g"].data, a["u"].data, a["eta"].data, a["w"].data,
+                     a["rho"].data, R(mu_u), R(mu_w), np.uint64(a["g"].size))
+            part.plan(n, self.backend).forward(a["g"], a["spec"])
+            self._ew(part, "xstep_accumulate", self.nfreq, a["spec"].data, a["hs"].data, pl["R"].data,
+                     pl["S"].data, pl["comp"].data, I(n), nf, I(j == 0))
+        if len(self.parts) > 1:   # the spectral sum over all planes, added in float64 (Kahan: sum - comp)
+            S = np.sum([p.planes["S"].get().astype(np.complex128) - p.planes["comp"].get() for p in self.parts],
+                       axis=0).astype(self.cdtype)
+            for part in self.parts:
+                part.planes["S"].set(S)
+        for part in self.parts:
+            self._ew(part, "xstep_hx", self.nfreq, part.planes["S"].data, part.planes["hn2"].data, R(c),
+                     R(mu_v), nf)
+        for i, part, j, n, a in self._each_slab(("spec", "hs"), ("g",)):
+            self._ew(part, "xstep_solve", self.nfreq, a["spec"].data, a["hs"].data, part.planes["S"].data,
+                     R(c), R(mu_v), I(n), nf)
+            part.plan(n, self.backend).inverse(a["spec"], a["g"])
+        self.parts[0].plan2d.inverse(p0["S"], p0["hx"])
+
+    def _fill(self, names, value=0):
+        for part in self.parts:
+            for n in names:
+                if n in part.planes:
+                    part.planes[n].fill(value)
+                else:
+                    part.fill(n, value)
+
+    def _gather(self, name) -> np.ndarray:
+        return np.concatenate([part.get(name) for part in self.parts], axis=0)
+
+    # ---- state access (tests and tools) ----------------------------------------------------------
+    def get_volume(self, name: str) -> np.ndarray:
+        """A (nz, Py, Px) volume of the state ('x', 'g', 'u', 'w', 'eta', 'rho', 'px', 'py', 'pz')."""
+        return self._gather(name)
+
+    def set_volume(self, name: str, value: np.ndarray) -> None:
+        value = np.asarray(value)
+        for part in self.parts:
+            for j, n, a in part.slabs(writes=(name,)):
+                z = part.z0 + part.bounds[j][0]
+                a[name].set(np.ascontiguousarray(value[z:z + n], a[name].dtype))
+
+    def get_plane(self, name: str) -> np.ndarray:
+        """A padded plane of part 0 ('v', 'xi', 'hx', ...), shape (1, Py, Px)."""
+        return self.parts[0].planes[name].get()
+
+    def set_plane(self, name: str, value: np.ndarray) -> None:
+        a = self.parts[0].planes[name]
+        a.set(np.ascontiguousarray(np.reshape(value, a.shape), a.dtype))
+
+    @property
+    def moved_bytes(self) -> int:
+        """Bytes copied between host and devices by streamed slabs and halos so far."""
+        return sum(part.moved_bytes for part in self.parts)
 
     # ---- one reconstruction -----------------------------------------------------------------
     def _check_range(self, scale: float, lo: float, hi: float) -> None:
@@ -214,17 +303,13 @@ class ADMMSolver:
         self._check_range(self.psf_scale / y_scale, 1e6, 1e-6)   # refuses only what must fail
         y_n = np.asarray(y, np.float64) * y_scale   # normalised in float64 before the device sees it
 
-        p, m, rt, q, R = self.p, self.model, self.rt, self.rt.queue, self.dtype.type
-        I = np.int32  # noqa: E741
+        p, R, I = self.p, self.dtype.type, np.int32  # noqa: E741
         ny, nx = self.P
-        my, mx = self.M
-        oy, ox = m.offsets
-        for a in [self.x, self.u, self.w, self.eta, self.rho, self.v, self.xi] + self.pd:
-            a.fill(0)
-        sensor = Volume(rt, [(0, 1)], self.M, self.dtype).set(y_n[None])
-        m.embed_from_sensor(sensor.slabs[0], self.cty.slabs[0])
-        bounds = m.bounds
-        nslab = len(bounds)
+        p0, pl0 = self.parts[0], self.parts[0].planes
+        self._fill(("x", "u", "w", "eta", "rho", "v", "xi", "px", "py", "pz"))
+        cty = np.zeros(self.P, self.dtype)
+        cty[self.crop] = y_n.astype(self.dtype)
+        pl0["cty"].set(cty[None])
         ctl = Control(p, ProblemScale.of(np.where(wts > 0, y_n, 0.0), self.spectral_mean, self.nz), callback,
                       callback_every)
         aw, iso = R(p.tv_axial_weight), I(1 if p.tv_isotropic else 0)
@@ -232,58 +317,53 @@ class ADMMSolver:
         # The data split starts at its minimiser for x = 0 (v = C^T y / (C^T C + mu_v)), not at 0, so that
         # the first x step already moves towards the data (a 1-iteration solve is not all zeros).
         cw = np.zeros(self.P)
-        cw[oy:oy + my, ox:ox + mx] = wts
-        self.cw.set(cw[None])
+        cw[self.crop] = wts
+        pl0["cw"].set(cw[None].astype(self.dtype))
         v0 = np.zeros(self.P)
-        v0[oy:oy + my, ox:ox + mx] = wts * y_n / (wts + ctl.mu_v)
-        self.v.set(v0[None])
+        v0[self.crop] = wts * y_n / (wts + ctl.mu_v)
+        pl0["v"].set(v0[None].astype(self.dtype))
+        grid = lambda a: (a["px"].data, a["py"].data, a["pz"].data)  # noqa: E731
         for it in range(1, p.max_iter + 1):
             mu_v, mu_u, mu_w = ctl.mu_v, ctl.mu_u, ctl.mu_w
             self.x_step(mu_v, mu_u, mu_w)
-            self.x, self.g = self.g, self.x  # x: new iterate, g: previous one (then scratch)
-            self.partials.fill(0)
+            for part in self.parts:
+                part.swap("x", "g")   # x: new iterate, g: previous one (then scratch)
+                part.partials.fill(0)
             # ---- w split (+ objective terms of x)
-            for j, ((z0, z1), xs, gs, ws, rs) in enumerate(zip(bounds, self.x.slabs, self.g.slabs,
-                                                              self.w.slabs, self.rho.slabs)):
-                has_next = j + 1 < nslab
-                xn = self.x.slabs[j + 1] if has_next else xs
-                self._red("update_w", xs.size, DX2, xs.data, xn.data, I(has_next), gs.data, ws.data,
-                          rs.data, R(ctl.l1), R(mu_w), aw, iso, I(z1 - z0), I(ny), I(nx))
-            # ---- v split
-            self._red("update_v", ny * nx, RV2, self.v.slabs[0].data, self.xi.slabs[0].data,
-                      self.hx.slabs[0].data, self.cty.slabs[0].data, self.cw.slabs[0].data, R(mu_v), I(ny),
-                      I(nx))
+            for i, part, j, n, a in self._each_slab(("x", "g", "w", "rho"), ("w", "rho")):
+                xn, has_next = self._next(i, j, "x")
+                self._red(part, "update_w", a["x"].size, DX2, a["x"].data, (xn if has_next else a["x"]).data,
+                          I(has_next), a["g"].data, a["w"].data, a["rho"].data, R(ctl.l1), R(mu_w), aw, iso,
+                          I(n), I(ny), I(nx))
+            # ---- v split (the plane lives on part 0)
+            self._red(p0, "update_v", ny * nx, RV2, pl0["v"].data, pl0["xi"].data, pl0["hx"].data,
+                      pl0["cty"].data, pl0["cw"].data, R(mu_v), I(ny), I(nx))
             # ---- u split (TV)
             tau = ctl.tv / mu_u
-            px_, py_, pz_ = self.pd
             if tau > 0:
                 for _ in range(p.tv_iters):
-                    for j, (z0, z1) in enumerate(bounds):
-                        hp, hn = j > 0, j + 1 < nslab
-                        prev = pz_.slabs[j - 1] if hp else pz_.slabs[j]
-                        self._grid("tv_residual", z1 - z0, self.g.slabs[j].data,
-                                   px_.slabs[j].data, py_.slabs[j].data, pz_.slabs[j].data, prev.data,
-                                   I(hp), I(prev.shape[0]), I(hn), self.x.slabs[j].data,
-                                   self.eta.slabs[j].data, R(1.0 / mu_u), R(1.0 / tau), aw,
-                                   I(z1 - z0), I(ny), I(nx))
-                    for j, (z0, z1) in enumerate(bounds):
-                        hn = j + 1 < nslab
-                        gn = self.g.slabs[j + 1] if hn else self.g.slabs[j]
-                        self._grid("tv_dual_step", z1 - z0, px_.slabs[j].data,
-                                   py_.slabs[j].data, pz_.slabs[j].data, self.g.slabs[j].data, gn.data,
-                                   I(hn), step, aw, iso, I(z1 - z0), I(ny), I(nx))
-            for j, (z0, z1) in enumerate(bounds):
-                hp, hn = j > 0, j + 1 < nslab
-                prev = pz_.slabs[j - 1] if hp else pz_.slabs[j]
-                self._red("tv_finish", self.u.slabs[j].size, RU2, self.u.slabs[j].data,
-                          self.eta.slabs[j].data, self.x.slabs[j].data, px_.slabs[j].data, py_.slabs[j].data,
-                          pz_.slabs[j].data, prev.data, I(hp), I(prev.shape[0]), I(hn), R(mu_u), R(tau), aw,
-                          I(z1 - z0), I(ny), I(nx))
-            # ---- the scalars of this iteration: one small read
-            L = self.local["reduce_partials"]
-            self.k["reduce_partials"](q, (NSLOTS * L,), (L,), self.partials.data, self.out.data,
-                                      I(self.pstride), kernels.local_memory(L * self.dtype.itemsize))
-            s = self.out.get().astype(np.float64)
+                    for i, part, j, n, a in self._each_slab(("px", "py", "pz", "x", "eta"), ("g",)):
+                        prev, pn, hp = self._prev(i, j, "pz")
+                        hn = self._has_next(i, j)
+                        self._grid(part, "tv_residual", n, a["g"].data, *grid(a), (prev if hp else a["pz"]).data,
+                                   I(hp), I(pn), I(hn), a["x"].data, a["eta"].data, R(1.0 / mu_u), R(1.0 / tau),
+                                   aw, I(n), I(ny), I(nx))
+                    for i, part, j, n, a in self._each_slab(("px", "py", "pz", "g"), ("px", "py", "pz")):
+                        gn, hn = self._next(i, j, "g")
+                        self._grid(part, "tv_dual_step", n, *grid(a), a["g"].data, (gn if hn else a["g"]).data,
+                                   I(hn), step, aw, iso, I(n), I(ny), I(nx))
+            for i, part, j, n, a in self._each_slab(("u", "eta", "x", "px", "py", "pz"), ("u", "eta")):
+                prev, pn, hp = self._prev(i, j, "pz")
+                self._red(part, "tv_finish", a["u"].size, RU2, a["u"].data, a["eta"].data, a["x"].data, *grid(a),
+                          (prev if hp else a["pz"]).data, I(hp), I(pn), I(self._has_next(i, j)), R(mu_u), R(tau),
+                          aw, I(n), I(ny), I(nx))
+            # ---- the scalars of this iteration: one small read per part, added in float64
+            s = np.zeros(NSLOTS)
+            for part in self.parts:
+                L = part.local["reduce_partials"]
+                part.k["reduce_partials"](part.rt.queue, (NSLOTS * L,), (L,), part.partials.data, part.out.data,
+                                          I(part.pstride), kernels.local_memory(L * self.dtype.itemsize))
+                s += part.out.get().astype(np.float64)
             if not np.all(np.isfinite(s)):
                 raise DeviceError(f"iteration {it}: non-finite residuals or objective on the device; "
                                   "the computation diverged")
@@ -293,19 +373,26 @@ class ADMMSolver:
                 break
         last = ctl.log[-1]
         log.info("ADMM on %s: %d iterations, %s (relative residuals %.2e / %.2e, change %.2e), %.2f s",
-                 rt.caps.name, len(ctl.log), "converged" if ctl.converged else "stopped at max_iter",
+                 ", ".join(part.rt.caps.name for part in self.parts), len(ctl.log),
+                 "converged" if ctl.converged else "stopped at max_iter",
                  last["primal_rel"], last["dual_rel"], last["rel_change"], last["seconds"])
-        x = self.x.get()
-        x = np.maximum(x, 0)
+        x = np.maximum(self._gather("x"), 0)
         self._check_range(self.psf_scale / y_scale, float(x.max()), float(x.max()))
         vol = (x * (self.psf_scale / y_scale)).astype(self.dtype)  # scaled in float64, the solve's dtype
+        layout = [{"device": part.rt.caps.name, "planes": [part.z0, part.z1], "streamed": part.streamed,
+                   "slab_planes": part.max_planes} for part in self.parts]
         return Reconstruction(
-            volume_padded=vol, crop=m.crop, log=ctl.log,
+            volume_padded=vol, crop=self.crop, log=ctl.log,
             scaling={"psf_scale": float(self.psf_scale), "y_scale": float(y_scale)},
             params=p.as_dict(),
-            info={"device": rt.caps.name, "platform": rt.caps.platform, "dtype": self.dtype.name,
-                  "backend": self.backend, "padded_shape": self.P, "slabs": len(bounds), **ctl.summary(),
-                  "device_bytes": int(self.allocated_bytes)})
+            info={"device": self.rt.caps.name, "platform": self.rt.caps.platform, "dtype": self.dtype.name,
+                  "backend": self.backend, "padded_shape": self.P,
+                  "slabs": sum(len(part.bounds) for part in self.parts), "layout": layout, **ctl.summary(),
+                  "device_bytes": int(self.allocated_bytes), "host_bytes": int(self.host_bytes),
+                  "moved_bytes": int(self.moved_bytes)})
+
+    def _has_next(self, i, j) -> bool:
+        return j + 1 < len(self.parts[i].bounds) or i + 1 < len(self.parts)
 
 
 _D = ADMMParams()
@@ -323,7 +410,8 @@ def reconstruct(measurement, psf, *,
                 adapt_max_step: float = _D.adapt_max_step, adapt_until: int = _D.adapt_until,
                 mu_range: float = _D.mu_range, normalize: bool = _D.normalize,
                 dtype=np.float32, backend: str = "auto", device=None, padded_shape=None,
-                max_slab_planes: int | None = None, voxel_size_um=None, depths_um=None,
+                max_slab_planes: int | None = None, devices=None, max_memory=None, stream="auto",
+                voxel_size_um=None, depths_um=None,
                 weights=None, padding: str = "full", callback=None, callback_every: int = 1) -> Reconstruction:
     """Reconstruct a 3D volume from one CM2 measurement (paper Eq. 4) on an OpenCL device.
 
@@ -384,7 +472,16 @@ def reconstruct(measurement, psf, *,
     padded_shape : (Py, Px), optional
         Object grid, >= 2M - 1 (default: the FFT backend's fast size).
     max_slab_planes : int, optional
-        Cap on the depth planes per device buffer.
+        Cap on the depth planes per device buffer (and per streamed slab).
+    devices : list of devices, optional
+        Spread the depth planes over these devices (indices, names, pyopencl Devices or Runtimes), each
+        holding a contiguous run of planes; the iterates equal the one-device solve's to float rounding.
+    max_memory : int, optional
+        Bytes each device may use (default 90% of its memory): the planner keeps the planes resident
+        when they fit, else streams them (see ``stream``).
+    stream : 'auto' (default), True or False
+        Stream depth slabs through each device from host memory: when they do not fit ('auto'), always
+        (True), or never (False: a problem too large is refused).
     voxel_size_um : (dz, dy, dx) in um, optional
         Object-space voxel size, carried to ``rec.voxel_size_um``.
     depths_um : (nz,) in um, optional
@@ -453,7 +550,8 @@ def reconstruct(measurement, psf, *,
 
         psf, padded_shape, pad_info = support_padding(psf, fft_backend(backend, device))
     solver = ADMMSolver(psf, prm, dtype=dtype, backend=backend, device=device,
-                        padded_shape=padded_shape, max_slab_planes=max_slab_planes)
+                        padded_shape=padded_shape, max_slab_planes=max_slab_planes, devices=devices,
+                        max_memory=max_memory, stream=stream)
     rec = solver.solve(y, callback=callback, callback_every=callback_every, weights=weights)
     rec.voxel_size_um, rec.depths_um = vs, d
     rec.info["padding"] = pad_info or {"padded_shape": list(solver.P), "support_px": None}

@@ -1,14 +1,21 @@
-"""Memory model: bytes the solver allocates on a device for a problem, whether it fits, and the
-memory the host has available (psutil: Linux, macOS and Windows alike)."""
+"""Memory model and planner: bytes the solver allocates on a device for a problem, the layout of its
+depth planes over devices (resident or streamed slabs, :mod:`.parts`) that fits the memory it is given,
+and the memory the host has available (psutil: Linux, macOS and Windows alike)."""
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 
 from ..device.fft import spectrum_shape
 from ..errors import DeviceError
 
-__all__ = ["memory_estimate", "check_fits", "host_available_bytes"]
+__all__ = ["memory_estimate", "check_fits", "host_available_bytes", "plan_layout", "PartPlan", "device_budget",
+           "streamed_bytes_per_iteration"]
+
+#: fraction of a device's global memory the planner uses by default (drivers and FFT scratch need some)
+BUDGET_FRACTION = 0.9
 
 
 def host_available_bytes() -> int:
@@ -23,26 +30,102 @@ REAL_VOLUMES = 9
 
 
 def memory_estimate(nz, padded_shape, dtype, backend) -> dict:
-    """Bytes the solver allocates on the device (FFT libraries may add their own scratch)."""
+    """Bytes the solver allocates on one device for ``nz`` resident planes (FFT libraries may add their
+    own scratch): ``per_plane`` for each depth plane, ``fixed`` for the plane buffers."""
     py, px = padded_shape
     item = np.dtype(dtype).itemsize
     spec_plane = int(np.prod(spectrum_shape((py, px), backend))) * 2 * item
     real_plane = py * px * item
-    per_plane = REAL_VOLUMES * real_plane + 2 * spec_plane  # + x spectra + PSF spectra
-    fixed = 7 * real_plane + 4 * spec_plane  # planes: v, xi, hx, cty, cw, r, psf tmp; R, S, comp, hn2
+    # + x spectra + PSF spectra; the reductions' partial sums (18 per work-group of >= 16 items x 64
+    # elements) stay below 1/32 of a real plane
+    per_plane = REAL_VOLUMES * real_plane + 2 * spec_plane + real_plane // 32
+    # planes: v, xi, hx, cty, cw, r and two halos (real); R, S, comp (complex); hn2 (real, spectrum grid)
+    fixed = 8 * real_plane + 3 * spec_plane + spec_plane // 2 + 1024
     return {"per_plane": per_plane, "fixed": fixed, "total": nz * per_plane + fixed,
             "real_volume": nz * real_plane, "psf_spectra": nz * spec_plane}
 
 
-def check_fits(rt, nz, padded_shape, dtype, backend, budget_fraction=0.9):
+def device_budget(rt, max_memory=None) -> int:
+    """Bytes the planner may use on ``rt``: ``max_memory`` (a cap, e.g. for tests) or 90% of its memory."""
+    cap = int(rt.caps.global_mem * BUDGET_FRACTION)
+    return min(cap, int(max_memory)) if max_memory else cap
+
+
+def check_fits(rt, nz, padded_shape, dtype, backend, max_memory=None):
     est = memory_estimate(nz, padded_shape, dtype, backend)
-    budget = int(rt.caps.global_mem * budget_fraction)
+    budget = device_budget(rt, max_memory)
     if est["total"] > budget:
         fit = max(0, (budget - est["fixed"]) // est["per_plane"])
         raise DeviceError(
             f"problem too large for device '{rt.caps.name}': {nz} planes on a "
             f"{padded_shape[0]} x {padded_shape[1]} padded grid need {est['total'] / 2**30:.2f} GiB, "
             f"the device offers {budget / 2**30:.2f} GiB; {fit} planes fit at this size "
-            "(use fewer planes, bin the measurement, or depth slabs over devices)"
+            "(stream depth slabs, spread them over devices, use fewer planes or bin the measurement)"
         )
     return est
+
+
+def streamed_bytes_per_iteration(planes, padded_shape, dtype, backend, tv_iters) -> int:
+    """Host <-> device bytes one iteration moves for ``planes`` streamed planes (halo planes aside):
+    each step copies in what it reads and out what it writes (cm2cl.solver.admm): x step 4V + S in, S
+    out, then 2S in, V out; w split 4V in, 2V out; per TV iteration 5V in, V out and 4V in, 3V out;
+    TV finish 6V in, 2V out (V: a real volume of the planes, S: their spectra)."""
+    est = memory_estimate(planes, padded_shape, dtype, backend)
+    V, S = est["real_volume"], est["psf_spectra"]
+    return int((4 + 1 + 4 + 2 + 6 + 2 + 13 * tv_iters) * V + 4 * S)
+
+
+@dataclass(frozen=True)
+class PartPlan:
+    """Planes [z0, z1) on runtime ``rt``: resident, or streamed in slabs of ``slab_planes``."""
+    rt: object
+    z0: int
+    z1: int
+    streamed: bool
+    slab_planes: int | None
+    device_bytes: int
+    host_bytes: int
+
+
+def plan_layout(nz, padded_shape, dtype, backend, runtimes, *, max_memory=None, stream="auto",
+                max_slab_planes=None) -> list[PartPlan]:
+    """Spread ``nz`` planes over ``runtimes`` (contiguous runs, in proportion to each device's budget):
+    resident where every run fits its device, else (``stream`` 'auto' or True) streamed slabs sized to
+    the budget; ``stream=True`` streams even when resident would fit. Refuses with the smallest plan's
+    needs when not even one streamed plane per device fits."""
+    if stream not in ("auto", True, False):
+        raise ValueError(f"stream: expected 'auto', True or False, got {stream!r}")
+    est = memory_estimate(1, padded_shape, dtype, backend)
+    per, fixed = est["per_plane"], est["fixed"]
+    budgets = [device_budget(rt, max_memory) for rt in runtimes]
+    keep = [(rt, r, bud) for rt, r, bud in zip(runtimes, _proportional_runs(nz, budgets), budgets) if r[1] > r[0]]
+    runtimes, runs, budgets = [k[0] for k in keep], [k[1] for k in keep], [k[2] for k in keep]
+    if stream is not True and all(fixed + (b - a) * per <= bud for (a, b), bud in zip(runs, budgets)):
+        return [PartPlan(rt, a, b, False, max_slab_planes, fixed + (b - a) * per, 0)
+                for rt, (a, b) in zip(runtimes, runs)]
+    if stream is False:
+        need = max(fixed + (b - a) * per for a, b in runs)
+        raise DeviceError(
+            f"problem too large to keep on the device{'s' if len(runtimes) > 1 else ''}: {nz} planes on a "
+            f"{padded_shape[0]} x {padded_shape[1]} padded grid need {need / 2**30:.2f} GiB per device, "
+            f"{min(budgets) / 2**30:.2f} GiB available; stream depth slabs from host memory instead")
+    out = []
+    for rt, (a, b), bud in zip(runtimes, runs, budgets):
+        slab = (bud - fixed) // per
+        if slab < 1:
+            raise DeviceError(
+                f"problem too large even streamed: one depth plane of a {padded_shape[0]} x {padded_shape[1]} "
+                f"padded grid needs {(fixed + per) / 2**20:.2f} MiB on device '{rt.caps.name}', "
+                f"{bud / 2**20:.2f} MiB available (bin the measurement, use support padding or lateral tiles)")
+        slab = int(min(slab, b - a, max_slab_planes or slab))
+        out.append(PartPlan(rt, a, b, True, slab, fixed + slab * per, (b - a) * per))
+    return out
+
+
+def _proportional_runs(nz, budgets):
+    """Contiguous runs of planes, one per device (empty where a device gets none), in proportion to
+    the budgets."""
+    share = np.asarray(budgets, float) / float(np.sum(budgets))
+    edges = (np.concatenate([[0], np.cumsum(share)]) * nz).round().astype(int)
+    edges[-1] = nz
+    return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:])]

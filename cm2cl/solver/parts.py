@@ -1,0 +1,161 @@
+"""Where the depth planes of one solve live: a list of parts, each a contiguous run of planes on one
+device, either resident (every volume in device memory) or streamed (the volumes in host memory, one
+slab at a time on the device).
+
+The ADMM iteration couples planes only through sums over depth (the x step's spectral sum and the
+scalars of the stopping rule) and through TV's axial neighbours (one plane across each slab border), so
+a solve split this way computes the same iterates as the whole solve: the sums are added on the host in
+float64 and the border planes are copied into one-plane halo buffers (DESIGN.md section 5).
+
+Each step of an iteration visits every slab with the volumes it reads and writes (:meth:`Part.slabs`);
+a streamed part copies the slab's read set to the device before the step and its write set back after
+it, so the device holds one slab of each volume plus the plane buffers (:func:`part_bytes`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..device.volume import Volume, slab_bounds
+from ..device.fft import get_plan
+
+#: the solver's real volumes on the padded grid and its complex ones (x spectra, PSF spectra)
+REAL = ("x", "g", "u", "w", "eta", "rho", "px", "py", "pz")
+COMPLEX = ("spec", "hs")
+
+__all__ = ["Part", "split_planes", "REAL", "COMPLEX"]
+
+
+def split_planes(nz: int, parts: int) -> list[tuple[int, int]]:
+    """nz planes in ``parts`` contiguous runs of near-equal length."""
+    edges = np.linspace(0, nz, parts + 1).round().astype(int)
+    return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:]) if b > a]
+
+
+class Part:
+    """Planes [z0, z1) of the volume on runtime ``rt``.
+
+    ``slab_planes`` caps the planes per slab (device buffers are also capped by the device's largest
+    allocation). ``streamed``: the volumes live in host memory and each slab is copied to one set of
+    device buffers for each step."""
+
+    def __init__(self, rt, z0, z1, padded_shape, spec_plane, dtype, cdtype, *, slab_planes=None,
+                 streamed=False):
+        self.rt, self.z0, self.z1 = rt, int(z0), int(z1)
+        self.P, self.spec_plane = tuple(padded_shape), tuple(spec_plane)
+        self.dtype, self.cdtype = np.dtype(dtype), np.dtype(cdtype)
+        self.streamed = bool(streamed)
+        plane_bytes = int(np.prod(self.spec_plane)) * self.cdtype.itemsize
+        self.bounds = slab_bounds(self.z1 - self.z0, plane_bytes, rt.caps.max_alloc, slab_planes)
+        self.max_planes = max(b - a for a, b in self.bounds)
+        shapes = {n: (self.P, self.dtype) for n in REAL} | {n: (self.spec_plane, self.cdtype) for n in COMPLEX}
+        if self.streamed:
+            import pyopencl.array as cla
+
+            self.host = {n: [np.zeros((b - a,) + s, d) for a, b in self.bounds] for n, (s, d) in shapes.items()}
+            self.slot = {n: cla.zeros(rt.queue, (self.max_planes,) + s, d) for n, (s, d) in shapes.items()}
+            self.vol = None
+        else:
+            self.vol = {n: Volume(rt, self.bounds, s, d) for n, (s, d) in shapes.items()}
+        plane = lambda shape, dt: Volume(rt, [(0, 1)], shape, dt).slabs[0]  # noqa: E731
+        self.planes = {n: plane(self.P, self.dtype) for n in ("v", "xi", "hx", "cty", "cw", "r",
+                                                              "halo_prev", "halo_next")}
+        self.planes |= {n: plane(self.spec_plane, self.cdtype) for n in ("R", "S", "comp")}
+        self.planes["hn2"] = plane(self.spec_plane, self.dtype)
+        self.moved_bytes = 0   # host <-> device traffic of the streamed slabs
+
+    # ---- allocation figures -------------------------------------------------------------------
+    @property
+    def device_bytes(self) -> int:
+        if self.streamed:
+            vols = sum(a.nbytes for a in self.slot.values())
+        else:
+            vols = sum(v.nbytes for v in self.vol.values())
+        return vols + sum(a.nbytes for a in self.planes.values())
+
+    @property
+    def host_bytes(self) -> int:
+        return sum(a.nbytes for arrs in self.host.values() for a in arrs) if self.streamed else 0
+
+    def plan(self, planes: int, backend: str):
+        return get_plan(self.rt, self.P, planes, self.dtype, backend)
+
+    # ---- slab access -------------------------------------------------------------------------------
+    def arrays(self, j: int, names) -> dict:
+        """Device arrays of slab ``j`` (resident parts: the volumes themselves; streamed: the slots,
+        whatever they hold)."""
+        a, b = self.bounds[j]
+        if self.streamed:
+            return {n: self.slot[n][: b - a] for n in names}
+        return {n: self.vol[n].slabs[j] for n in names}
+
+    def slabs(self, reads=(), writes=(), scratch=()):
+        """Visit each slab: yields (j, planes, arrays) with the device arrays of ``reads``, ``writes``
+        and ``scratch``; a streamed part copies ``reads`` in before and ``writes`` out after."""
+        names = tuple(dict.fromkeys(tuple(reads) + tuple(writes) + tuple(scratch)))
+        for j, (a, b) in enumerate(self.bounds):
+            arr = self.arrays(j, names)
+            if self.streamed:
+                for n in reads:
+                    arr[n].set(self.host[n][j])
+                    self.moved_bytes += self.host[n][j].nbytes
+            yield j, b - a, arr
+            if self.streamed:
+                for n in writes:
+                    arr[n].get(ary=self.host[n][j])
+                    self.moved_bytes += self.host[n][j].nbytes
+
+    def neighbour(self, name: str, j: int, which: str):
+        """The device array holding the plane next to slab ``j`` inside this part (``which`` = 'next':
+        the first plane of slab j+1, 'prev': the last plane of slab j-1), with its plane count; a
+        streamed part copies that plane into a halo buffer."""
+        k = j + 1 if which == "next" else j - 1
+        if not self.streamed:
+            s = self.vol[name].slabs[k]
+            return s, s.shape[0]
+        src = self.host[name][k]
+        return self.load_halo(which, src[0] if which == "next" else src[-1]), 1
+
+    def load_halo(self, which: str, plane: np.ndarray):
+        buf = self.planes["halo_" + which]
+        buf.set(np.ascontiguousarray(plane, self.dtype)[None])
+        self.moved_bytes += buf.nbytes
+        return buf
+
+    def edge_plane(self, name: str, which: str) -> np.ndarray:
+        """The part's first ('first') or last ('last') plane of volume ``name`` on the host."""
+        j = 0 if which == "first" else len(self.bounds) - 1
+        if self.streamed:
+            return self.host[name][j][0 if which == "first" else -1]
+        s = self.vol[name].slabs[j]
+        self.moved_bytes += s[0].nbytes
+        return (s[0] if which == "first" else s[s.shape[0] - 1]).get()
+
+    # ---- whole volumes -------------------------------------------------------------------------------
+    def fill(self, name: str, value=0):
+        if self.streamed:
+            for h in self.host[name]:
+                h.fill(value)
+        else:
+            self.vol[name].fill(value)
+
+    def get(self, name: str) -> np.ndarray:
+        if self.streamed:
+            return np.concatenate(self.host[name], axis=0)
+        return self.vol[name].get()
+
+    def swap(self, a: str, b: str):
+        """Exchange two volumes' roles (no copy)."""
+        store = self.host if self.streamed else self.vol
+        store[a], store[b] = store[b], store[a]
+        if self.streamed:
+            self.slot[a], self.slot[b] = self.slot[b], self.slot[a]
+
+    def scale(self, name: str, factor):
+        """Multiply a volume by a real scalar in place (the PSF spectra's normalisation)."""
+        if self.streamed:
+            for h in self.host[name]:
+                h *= self.dtype.type(factor)
+        else:
+            for s in self.vol[name].slabs:
+                s *= self.dtype.type(factor)
