@@ -66,6 +66,22 @@ def test_series_frames_equal_single_frame_solves_and_carry_the_scale(rt, tmp_pat
         np.testing.assert_array_equal(arr[t], one.volume)
 
 
+def test_series_with_support_padding_and_streamed_slabs(rt, tmp_path):
+    """--padding support measures the PSF's support once for the whole series (each frame equals the
+    single-frame solve with padding='support'); a device cap streams the slabs and changes no bit."""
+    psf, frames = _series(tmp_path, n=2)
+    r = _job(tmp_path, tmp_path / "sup.ome.zarr", "--padding", "support")
+    assert r.returncode == 0, r.stderr
+    arr = np.asarray(zarr.open_group(str(tmp_path / "sup.ome.zarr"), mode="r")["0"])
+    one = cm2cl.reconstruct(frames[1], psf.astype(np.float32), max_iter=25, tol=0, padding="support")
+    assert tuple(one.info["padding"]["padded_shape"]) != (64, 80)      # the support grid is smaller
+    np.testing.assert_array_equal(arr[1], one.volume)
+    r = _job(tmp_path, tmp_path / "cap.ome.zarr", "--padding", "support", "--stream", "always")
+    assert r.returncode == 0, r.stderr
+    assert "GB streamed between host and devices" in r.stdout and " 0.00 GB streamed" not in r.stdout
+    np.testing.assert_array_equal(np.asarray(zarr.open_group(str(tmp_path / "cap.ome.zarr"), mode="r")["0"]), arr)
+
+
 def test_killed_job_resumes_to_identical_output(rt, tmp_path):
     """Killed (SIGKILL) after frame 1's chunk is written but before it is marked done: the rerun of the
     same command recomputes only frames 1.., and the store equals an uninterrupted run's bit for bit."""

@@ -65,7 +65,7 @@ def register(sub):
     g.add_argument("--padding", choices=["full", "support"], default="full",
                    help="padded grid: 'full' = 2M - 1; 'support' = M + K - 1 with K the PSF stack's measured "
                         "support (fewer voxels for a compact PSF; its faint tails beyond 1e-6 of the light are "
-                        "dropped); single frames")
+                        "dropped)")
     g.add_argument("--backend", default="auto", help="FFT backend: auto, cl, vkfft, reikna")
     g.add_argument("--device", default=None,
                    help="device index or name fragment (see cm2cl devices), or 'all' / '0,2': a single frame "

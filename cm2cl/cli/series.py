@@ -83,7 +83,16 @@ def command(args) -> int:
     if dt == np.float64 and not args.scheduler:
         for d in devices:
             get_runtime(d).check_dtype(dt)
-    prep = {"offset": off, "psf_offset": psf_off, "bin": args.bin}
+    from .reconstruct import _STREAM
+
+    solver_kw = {"max_memory": args.max_memory, "stream": _STREAM[args.stream]}
+    prep = {"offset": off, "psf_offset": psf_off, "bin": args.bin, "padding": args.padding}
+    if args.padding == "support":   # one grid for every frame, from the PSF stack's measured support
+        from ..device.fft import resolve_backend
+        from ..solver.forward import support_padding
+
+        h, solver_kw["padded_shape"], _ = support_padding(h, resolve_backend(args.backend, get_runtime(devices[0])))
+        prep["padded_shape"] = list(solver_kw["padded_shape"])
     key = fingerprint(h, params, series, dt, args.backend, prep)
     shape = (h.shape[0],) + sensor
     record = {"what": "cm2cl reconstruction series", "psf": str(args.psf), "params": params.as_dict(),
@@ -107,12 +116,16 @@ def command(args) -> int:
             s = run_series(series, h, store, params=params, key=key,
                            prepare=lambda a: prepare(a, offset=off, bin_factor=args.bin, name="measurement"),
                            dtype=dt, backend=args.backend, devices=devices, scheduler=args.scheduler,
-                           progress=progress)
+                           progress=progress, solver_kw=solver_kw)
         finally:
             if bar is not None:
                 bar.close()
+    import resource
+
     where = args.scheduler or ", ".join(s.devices) or "-"
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20    # Linux: KiB -> GiB
     print(f"{out}: {s.frames} frames of {shape} {dt.name} volumes; {s.computed} computed "
           f"({s.converged} converged, {s.iterations} iterations), {s.skipped} already done; "
-          f"{time.perf_counter() - t0:.1f} s on {where}")
+          f"{time.perf_counter() - t0:.1f} s on {where}; {s.moved_bytes / 1e9:.2f} GB streamed between host and "
+          f"devices, peak host RSS {rss:.2f} GiB")
     return 0

@@ -36,6 +36,7 @@ class JobSummary:
     devices: list = field(default_factory=list)
     converged: int = 0
     iterations: int = 0
+    moved_bytes: int = 0
 
 
 def fingerprint(psf, params: ADMMParams, series: FrameSeries, dtype, backend: str, prep: dict) -> str:
@@ -49,35 +50,37 @@ def fingerprint(psf, params: ADMMParams, series: FrameSeries, dtype, backend: st
     return h.hexdigest()
 
 
-def _solver(key, psf, params, dtype, backend, device):
+def _solver(key, psf, params, dtype, backend, device, solver_kw):
     from ..solver.admm import ADMMSolver
 
     with _SOLVERS_LOCK:
         if (key, device) not in _SOLVERS:
-            _SOLVERS[(key, device)] = (ADMMSolver(psf, params, dtype=dtype, backend=backend, device=device),
-                                       threading.Lock())
+            _SOLVERS[(key, device)] = (ADMMSolver(psf, params, dtype=dtype, backend=backend, device=device,
+                                                  **(solver_kw or {})), threading.Lock())
         return _SOLVERS[(key, device)]
 
 
-def solve_frame(key, psf, params_dict, dtype, backend, y, device=None):
-    """One frame on this process's solver for (key, device): (volume, info). Runs on Dask workers too."""
+def solve_frame(key, psf, params_dict, dtype, backend, y, device=None, solver_kw=None):
+    """One frame on this process's solver for (key, device): (volume, info). Runs on Dask workers too.
+    ``solver_kw``: ADMMSolver's layout options (padded_shape, max_memory, stream)."""
     params = ADMMParams.from_kwargs(**params_dict)
-    solver, lock = _solver(key, psf, params, np.dtype(dtype), backend, device)
+    solver, lock = _solver(key, psf, params, np.dtype(dtype), backend, device, solver_kw)
     with lock:
         t = time.perf_counter()
         rec = solver.solve(y)
     info = {"iterations": rec.iterations, "converged": bool(rec.info["converged"]), "stop": rec.info["stop"],
             "seconds": time.perf_counter() - t, "device": rec.info["device"],
-            "objective": rec.log[-1]["objective"]}
+            "objective": rec.log[-1]["objective"], "moved_bytes": rec.info["moved_bytes"]}
     return np.asarray(rec.volume), info
 
 
 def run_series(series: FrameSeries, psf, store: FrameStore, *, params: ADMMParams, key: str,
                prepare=lambda a: np.asarray(a, np.float64), dtype=np.float32, backend="auto", devices=(None,),
-               scheduler=None, progress=None) -> JobSummary:
+               scheduler=None, progress=None, solver_kw=None) -> JobSummary:
     """Reconstruct the frames of ``series`` missing from ``store``. ``prepare`` maps a decoded frame to
     the measurement (offset, binning); ``devices`` lists the local devices (index/name/None) to use;
-    ``scheduler`` a Dask scheduler address instead. ``progress(i, info)`` is called per finished frame."""
+    ``scheduler`` a Dask scheduler address instead. ``progress(i, info)`` is called per finished frame;
+    ``solver_kw`` goes to every worker's ADMMSolver (padded_shape, max_memory, stream)."""
     todo = store.missing()
     t0 = time.perf_counter()
     summary = JobSummary(frames=len(series), computed=0, skipped=len(series) - len(todo), seconds=0.0)
@@ -90,20 +93,21 @@ def run_series(series: FrameSeries, psf, store: FrameStore, *, params: ADMMParam
             summary.computed += 1
             summary.converged += int(info["converged"])
             summary.iterations += int(info["iterations"])
+            summary.moved_bytes += int(info.get("moved_bytes", 0))
             if info["device"] not in summary.devices:
                 summary.devices.append(info["device"])
         if progress is not None:
             progress(i, info)
 
     if scheduler:
-        _run_dask(series, psf, todo, pd, key, prepare, dtype, backend, scheduler, finish)
+        _run_dask(series, psf, todo, pd, key, prepare, dtype, backend, scheduler, finish, solver_kw)
     else:
-        _run_local(series, psf, todo, pd, key, prepare, dtype, backend, list(devices), finish)
+        _run_local(series, psf, todo, pd, key, prepare, dtype, backend, list(devices), finish, solver_kw)
     summary.seconds = time.perf_counter() - t0
     return summary
 
 
-def _run_local(series, psf, todo, pd, key, prepare, dtype, backend, devices, finish):
+def _run_local(series, psf, todo, pd, key, prepare, dtype, backend, devices, finish, solver_kw):
     q: queue.Queue = queue.Queue()
     for i in todo:
         q.put(i)
@@ -117,7 +121,7 @@ def _run_local(series, psf, todo, pd, key, prepare, dtype, backend, devices, fin
                 except queue.Empty:
                     return
                 y = prepare(series.read(i))
-                vol, info = solve_frame(key, psf, pd, np.dtype(dtype).name, backend, y, device)
+                vol, info = solve_frame(key, psf, pd, np.dtype(dtype).name, backend, y, device, solver_kw)
                 finish(i, vol, info)
         except BaseException as exc:  # noqa: BLE001 - handed to the caller below
             errors.append(exc)
@@ -131,7 +135,7 @@ def _run_local(series, psf, todo, pd, key, prepare, dtype, backend, devices, fin
         raise errors[0]
 
 
-def _run_dask(series, psf, todo, pd, key, prepare, dtype, backend, address, finish):
+def _run_dask(series, psf, todo, pd, key, prepare, dtype, backend, address, finish, solver_kw):
     try:
         from distributed import Client, as_completed
     except ImportError as exc:
@@ -145,7 +149,8 @@ def _run_dask(series, psf, todo, pd, key, prepare, dtype, backend, address, fini
         futs = {}
         for i in todo:
             y = prepare(series.read(i))
-            futs[client.submit(solve_frame, key, psf_f, pd, np.dtype(dtype).name, backend, y, pure=False)] = i
+            futs[client.submit(solve_frame, key, psf_f, pd, np.dtype(dtype).name, backend, y,
+                               solver_kw=solver_kw, pure=False)] = i
         for fut in as_completed(list(futs)):
             vol, info = fut.result()
             finish(futs[fut], vol, info)
