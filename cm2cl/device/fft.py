@@ -118,6 +118,17 @@ class FFTPlan:
         else:
             raise InputError(f"fft backend: unknown backend {backend!r}")
 
+    @property
+    def scratch_bytes(self) -> int:
+        """Device bytes the FFT library allocates for this plan besides input and output: VkFFT's
+        temporary buffer (pyvkfft's ``tmp_buffer_nbytes``), cm2cl's pass-path scratch; reikna's own
+        temporaries are not reported (0)."""
+        if self.backend == "cl":
+            return int(self._cl.scratch_bytes)
+        if self.backend == "vkfft":
+            return int(getattr(self._app, "tmp_buffer_nbytes", 0) or 0)
+        return 0
+
     def _check(self, a, shape, dtype, what):
         if tuple(a.shape) != tuple(shape) or a.dtype != dtype:
             raise InputError(f"{what}: expected {shape} {np.dtype(dtype)}, got {a.shape} {a.dtype}")

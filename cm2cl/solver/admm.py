@@ -25,7 +25,7 @@ from .control import Control, ProblemScale
 from .params import ADMMParams
 from .parts import Part
 from .result import Reconstruction
-from .memory import memory_estimate, plan_layout
+from .memory import fft_scratch_per_plane, memory_estimate, plan_layout
 
 # Slots of the per-iteration reduction buffer.
 # Slots of the per-iteration reduction buffer, in the order each fused kernel writes them.
@@ -105,9 +105,10 @@ class ADMMSolver:
         if any(p < max(n, m) for p, n, m in zip(P, need, sensor)):
             raise InputError(f"padded_shape: {P} is smaller than sensor + PSF support - 1 = {need}")
         self.P, self.M, self.nz = P, tuple(sensor), psf.shape[0]
+        scratch = fft_scratch_per_plane(rt, P, self.dtype, self.backend)
         self.layout = plan_layout(self.nz, P, self.dtype, self.backend, rts, max_memory=max_memory,
-                                  stream=stream, max_slab_planes=max_slab_planes)
-        self.memory = memory_estimate(self.nz, P, self.dtype, self.backend)
+                                  stream=stream, max_slab_planes=max_slab_planes, scratch_per_plane=scratch)
+        self.memory = memory_estimate(self.nz, P, self.dtype, self.backend, scratch)
         self.cdtype = complex_dtype(self.dtype)
         spec_plane = get_plan(rt, P, 1, self.dtype, self.backend).spec_shape[1:]
         self.nfreq = int(np.prod(spec_plane))
@@ -157,7 +158,10 @@ class ADMMSolver:
         psf_n = psf * self.psf_scale  # the normalised stack the solver sees (float64, host)
         self.spectral_mean = float(np.sum(psf_n * psf_n))
         self.psf_scale *= self.psf_prescale  # the whole scale from the caller's PSF
-        self.allocated_bytes = sum(part.device_bytes + part.partials.nbytes + part.out.nbytes
+        # buffers, plus the FFT libraries' scratch of the plans each part uses
+        self.allocated_bytes = sum(part.device_bytes + part.partials.nbytes + part.out.nbytes + part.plan2d.scratch_bytes
+                                   + sum(part.plan(n, self.backend).scratch_bytes
+                                         for n in {b - a for a, b in part.bounds})
                                    for part in self.parts)
         self.host_bytes = sum(part.host_bytes for part in self.parts)
 

@@ -12,7 +12,7 @@ from ..device.fft import spectrum_shape
 from ..errors import DeviceError
 
 __all__ = ["memory_estimate", "check_fits", "host_available_bytes", "plan_layout", "PartPlan", "device_budget",
-           "streamed_bytes_per_iteration"]
+           "streamed_bytes_per_iteration", "fft_scratch_per_plane"]
 
 #: fraction of a device's global memory the planner uses by default (drivers and FFT scratch need some)
 BUDGET_FRACTION = 0.9
@@ -29,18 +29,26 @@ def host_available_bytes() -> int:
 REAL_VOLUMES = 9
 
 
-def memory_estimate(nz, padded_shape, dtype, backend) -> dict:
-    """Bytes the solver allocates on one device for ``nz`` resident planes (FFT libraries may add their
-    own scratch): ``per_plane`` for each depth plane, ``fixed`` for the plane buffers."""
+def fft_scratch_per_plane(rt, padded_shape, dtype, backend) -> int:
+    """The FFT library's scratch for one plane on ``rt`` (from a one-plane plan; it grows with the batch)."""
+    from ..device.fft import get_plan
+
+    return get_plan(rt, padded_shape, 1, dtype, backend).scratch_bytes
+
+
+def memory_estimate(nz, padded_shape, dtype, backend, scratch_per_plane=0) -> dict:
+    """Bytes the solver allocates on one device for ``nz`` resident planes: ``per_plane`` for each depth
+    plane, ``fixed`` for the plane buffers; ``scratch_per_plane`` is the FFT library's scratch for one
+    plane (:func:`fft_scratch_per_plane`; the one-plane transforms need it once more)."""
     py, px = padded_shape
     item = np.dtype(dtype).itemsize
     spec_plane = int(np.prod(spectrum_shape((py, px), backend))) * 2 * item
     real_plane = py * px * item
     # + x spectra + PSF spectra; the reductions' partial sums (18 per work-group of >= 16 items x 64
     # elements) stay below 1/32 of a real plane
-    per_plane = REAL_VOLUMES * real_plane + 2 * spec_plane + real_plane // 32
+    per_plane = REAL_VOLUMES * real_plane + 2 * spec_plane + real_plane // 32 + int(scratch_per_plane)
     # planes: v, xi, hx, cty, cw, r and two halos (real); R, S, comp (complex); hn2 (real, spectrum grid)
-    fixed = 8 * real_plane + 3 * spec_plane + spec_plane // 2 + 1024
+    fixed = 8 * real_plane + 3 * spec_plane + spec_plane // 2 + 1024 + int(scratch_per_plane)
     return {"per_plane": per_plane, "fixed": fixed, "total": nz * per_plane + fixed,
             "real_volume": nz * real_plane, "psf_spectra": nz * spec_plane}
 
@@ -88,14 +96,14 @@ class PartPlan:
 
 
 def plan_layout(nz, padded_shape, dtype, backend, runtimes, *, max_memory=None, stream="auto",
-                max_slab_planes=None) -> list[PartPlan]:
+                max_slab_planes=None, scratch_per_plane=0) -> list[PartPlan]:
     """Spread ``nz`` planes over ``runtimes`` (contiguous runs, in proportion to each device's budget):
     resident where every run fits its device, else (``stream`` 'auto' or True) streamed slabs sized to
     the budget; ``stream=True`` streams even when resident would fit. Refuses with the smallest plan's
     needs when not even one streamed plane per device fits."""
     if stream not in ("auto", True, False):
         raise ValueError(f"stream: expected 'auto', True or False, got {stream!r}")
-    est = memory_estimate(1, padded_shape, dtype, backend)
+    est = memory_estimate(1, padded_shape, dtype, backend, scratch_per_plane)
     per, fixed = est["per_plane"], est["fixed"]
     budgets = [device_budget(rt, max_memory) for rt in runtimes]
     keep = [(rt, r, bud) for rt, r, bud in zip(runtimes, _proportional_runs(nz, budgets), budgets) if r[1] > r[0]]
