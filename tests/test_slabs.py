@@ -124,6 +124,7 @@ def test_cli_streams_under_a_memory_cap_and_plans_it(rt, tmp_path, capsys):
     assert "planes 0..6, streamed in slabs of 3 planes" in text
     moved = streamed_bytes_per_iteration(7, (64, 80), np.float32, "cl", 2)
     assert f"moved between host and devices per iteration: {moved / 2**30:.2f} GiB" in text
+    assert "s per iteration" in text and "host <-> device" in text
     assert main(base + ["-o", str(tmp_path / "a.ome.tif"), "--max-memory", cap]) == 0
     text = capsys.readouterr().out
     assert "streamed in slabs of 3" in text and "GB moved between host and devices" in text and "peak host RSS" in text

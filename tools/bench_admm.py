@@ -23,17 +23,8 @@ from cm2cl import reference
 from cm2cl.device import fft  # noqa: E402
 from cm2cl.solver.admm import ADMMSolver  # noqa: E402
 from cm2cl.device import get_runtime  # noqa: E402
+from cm2cl.solver.memory import iteration_bytes  # noqa: E402
 from cm2cl.solver.params import ADMMParams  # noqa: E402
-
-
-def bytes_per_iteration(nz, P, spec_plane, tv_iters, item=4):
-    """Traffic of one iteration's fused kernels, each FFT counted as one read and one write.
-
-    rhs 5V; FFT V+S; x-step accumulate 3S and solve 3S; IFFT S+V; w split 6V; TV: residual 6V and
-    dual step 7V per inner iteration; TV finish 8V (V: a real volume, S: a spectrum volume)."""
-    V = nz * P[0] * P[1] * item
-    S = nz * int(np.prod(spec_plane)) * 2 * item
-    return (5 + 1 + 1 + 6 + 8 + 13 * tv_iters) * V + 8 * S
 
 
 def per_iteration(rec) -> float:
@@ -85,7 +76,7 @@ def main(argv=None):
             V = nz * s.P[0] * s.P[1] * 4
             spec_plane = s.parts[0].spec_plane
             limit = 12 * V + nz * int(np.prod(spec_plane)) * 2 * 4
-            floor = bytes_per_iteration(nz, s.P, spec_plane, p.tv_iters) / bw
+            floor = iteration_bytes(nz, s.P, np.float32, backend, p.tv_iters) / bw
             rows.append([f"{my} x {mx} x {nz}", backend, f"{s.P[0]} x {s.P[1]}", f"{dev:.3f}", f"{npy:.3f}",
                          f"{npy / dev:.2f}", f"{s.allocated_bytes / 2**20:.0f}", f"{limit / 2**20:.0f}",
                          f"{floor * 1e3:.1f}", f"{dev / floor:.1f}", f"{fft_t * 1e3:.0f} ({fft_t / dev:.0%})"])

@@ -29,17 +29,9 @@ def best_time(fn, repeat=5, warmup=1, sync=None) -> float:
 
 def copy_bandwidth(rt, nbytes=256 * 2**20) -> float:
     """Bytes per second of a device copy kernel (read + write counted), float32."""
-    import pyopencl.array as cla
+    from cm2cl.device.rates import copy_rate
 
-    from cm2cl.device import kernels
-
-    n = nbytes // 4
-    a = cla.zeros(rt.queue, n, np.float32)
-    b = cla.empty(rt.queue, n, np.float32)
-    k = kernels.kernel(rt, "layout.cl", "copy_real", np.float32)
-    t = best_time(lambda: k(rt.queue, (n,), None, b.data, a.data, np.uint64(n)), repeat=5,
-                  sync=rt.queue.finish)
-    return 2 * n * 4 / t
+    return copy_rate(rt, nbytes)
 
 
 def parse_size(spec: str):

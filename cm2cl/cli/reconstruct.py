@@ -363,7 +363,19 @@ def _plan(args) -> int:
           + (", streamed volumes" if moved else "") + f"), {host_cap / 2**30:.1f} GiB "
           + ("allowed (--host-memory)" if args.host_memory else "available"))
     if layout:
+        from ..device.rates import copy_rate, transfer_rate
+        from ..solver.memory import KERNEL_FLOOR_RATIO, expected_seconds
+
+        rts = {id(lp.rt): lp.rt for lp in layout}
+        copy = {k: copy_rate(rt) for k, rt in rts.items()}
+        xfer = {k: transfer_rate(rt) for k, rt in rts.items()} if moved else {k: 1.0 for k in rts}
+        t = expected_seconds(layout, P, dt, backend, args.tv_iters, copy, xfer)
+        iters = args.max_iter or _DEFAULTS.max_iter
         print(f"  moved between host and devices per iteration: {moved / 2**30:.2f} GiB")
+        print(f"  expected: about {t:.2g} s per iteration, {t * iters / 60:.2g} min for {iters} iterations (rates "
+              f"measured now: copy {min(copy.values()) / 1e9:.1f} GB/s"
+              + (f", host <-> device {min(xfer.values()) / 1e9:.1f} GB/s" if moved else "")
+              + f"; kernels at {KERNEL_FLOOR_RATIO}x the bandwidth floor, as measured on PoCL)")
     if problem:
         print(f"  does NOT fit: {problem}")
     elif not fits:

@@ -12,7 +12,7 @@ from ..device.fft import spectrum_shape
 from ..errors import DeviceError
 
 __all__ = ["memory_estimate", "check_fits", "host_available_bytes", "plan_layout", "PartPlan", "device_budget",
-           "streamed_bytes_per_iteration", "fft_scratch_per_plane"]
+           "streamed_bytes_per_iteration", "fft_scratch_per_plane", "iteration_bytes", "expected_seconds"]
 
 #: fraction of a device's global memory the planner uses by default (drivers and FFT scratch need some)
 BUDGET_FRACTION = 0.9
@@ -81,6 +81,34 @@ def streamed_bytes_per_iteration(planes, padded_shape, dtype, backend, tv_iters)
     est = memory_estimate(planes, padded_shape, dtype, backend)
     V, S = est["real_volume"], est["psf_spectra"]
     return int((4 + 1 + 4 + 2 + 6 + 2 + 13 * tv_iters) * V + 4 * S)
+
+
+def iteration_bytes(nz, padded_shape, dtype, backend, tv_iters) -> int:
+    """Device memory traffic of one iteration's kernels, each FFT counted as one read and one write:
+    rhs 5V; FFT V+S; x-step accumulate 3S and solve 3S; IFFT S+V; w split 6V; TV: residual 6V and dual
+    step 7V per inner iteration; TV finish 8V (V: a real volume, S: a spectrum volume)."""
+    est = memory_estimate(nz, padded_shape, dtype, backend)
+    return int((5 + 1 + 1 + 6 + 8 + 13 * tv_iters) * est["real_volume"] + 8 * est["psf_spectra"])
+
+
+#: seconds per iteration over the bandwidth floor (iteration_bytes / copy rate) of cm2cl's kernels,
+#: measured on PoCL (2-core AVX-512 CPU, docs/benchmarks.md: 1.9); GPUs not measured
+KERNEL_FLOOR_RATIO = 1.9
+
+
+def expected_seconds(layout, padded_shape, dtype, backend, tv_iters, copy_rates, transfer_rates) -> float:
+    """Expected seconds per iteration of a layout from rates measured on its devices (by runtime):
+    each part's kernels at KERNEL_FLOOR_RATIO x its bandwidth floor, plus its streamed bytes at the
+    transfer rate; parts on different devices run side by side, parts on one device one after another."""
+    per_device: dict = {}
+    for lp in layout:
+        t = KERNEL_FLOOR_RATIO * iteration_bytes(lp.z1 - lp.z0, padded_shape, dtype, backend, tv_iters) \
+            / copy_rates[id(lp.rt)]
+        if lp.streamed:
+            t += streamed_bytes_per_iteration(lp.z1 - lp.z0, padded_shape, dtype, backend, tv_iters) \
+                / transfer_rates[id(lp.rt)]
+        per_device[id(lp.rt)] = per_device.get(id(lp.rt), 0.0) + t
+    return max(per_device.values())
 
 
 @dataclass(frozen=True)
