@@ -199,11 +199,13 @@ class ADMMSolver:
             return part.load_halo("prev", self.parts[i - 1].edge_plane(name, "last")), 1, True
         return None, 1, False
 
-    def _each_slab(self, reads=(), writes=(), scratch=()):
-        """Every slab of every part: (part index, part, slab index, planes, arrays)."""
-        for i, part in enumerate(self.parts):
-            for j, n, a in part.slabs(reads, writes, scratch):
-                yield i, part, j, n, a
+    def _each_slab(self, reads=(), writes=(), scratch=(), edges=(), reverse=False):
+        """Every slab of every part (the last first with ``reverse``): (part index, part, slab index,
+        planes, arrays)."""
+        order = range(len(self.parts) - 1, -1, -1) if reverse else range(len(self.parts))
+        for i in order:
+            for j, n, a in self.parts[i].slabs(reads, writes, scratch, edges, reverse):
+                yield i, self.parts[i], j, n, a
 
     def x_step(self, mu_v, mu_u, mu_w):
         """Solve (mu_v H^T H + (mu_u + mu_w) I) x = H^T (mu_v v - xi) + (mu_u u - eta) + (mu_w w - rho)
@@ -345,14 +347,16 @@ class ADMMSolver:
             # ---- u split (TV)
             tau = ctl.tv / mu_u
             if tau > 0:
+                # One visit per slab and TV iteration, the last slab first: its residual needs the previous
+                # slab's dual variable before this iteration's step (not yet taken), its dual step the next
+                # slab's residual (already computed): the same values as all residuals, then all steps.
                 for _ in range(p.tv_iters):
-                    for i, part, j, n, a in self._each_slab(("px", "py", "pz", "x", "eta"), ("g",)):
+                    for i, part, j, n, a in self._each_slab(("px", "py", "pz", "x", "eta"), ("px", "py", "pz"),
+                                                            edges=("g",), reverse=True):
                         prev, pn, hp = self._prev(i, j, "pz")
-                        hn = self._has_next(i, j)
                         self._grid(part, "tv_residual", n, a["g"].data, *grid(a), (prev if hp else a["pz"]).data,
-                                   I(hp), I(pn), I(hn), a["x"].data, a["eta"].data, R(1.0 / mu_u), R(1.0 / tau),
-                                   aw, I(n), I(ny), I(nx))
-                    for i, part, j, n, a in self._each_slab(("px", "py", "pz", "g"), ("px", "py", "pz")):
+                                   I(hp), I(pn), I(self._has_next(i, j)), a["x"].data, a["eta"].data,
+                                   R(1.0 / mu_u), R(1.0 / tau), aw, I(n), I(ny), I(nx))
                         gn, hn = self._next(i, j, "g")
                         self._grid(part, "tv_dual_step", n, *grid(a), a["g"].data, (gn if hn else a["g"]).data,
                                    I(hn), step, aw, iso, I(n), I(ny), I(nx))

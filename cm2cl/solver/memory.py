@@ -76,11 +76,11 @@ def check_fits(rt, nz, padded_shape, dtype, backend, max_memory=None):
 def streamed_bytes_per_iteration(planes, padded_shape, dtype, backend, tv_iters) -> int:
     """Host <-> device bytes one iteration moves for ``planes`` streamed planes (halo planes aside):
     each step copies in what it reads and out what it writes (cm2cl.solver.admm): x step 4V + S in, S
-    out, then 2S in, V out; w split 4V in, 2V out; per TV iteration 5V in, V out and 4V in, 3V out;
-    TV finish 6V in, 2V out (V: a real volume of the planes, S: their spectra)."""
+    out, then 2S in, V out; w split 4V in, 2V out; per TV iteration 5V in, 3V out; TV finish 6V in,
+    2V out (V: a real volume of the planes, S: their spectra)."""
     est = memory_estimate(planes, padded_shape, dtype, backend)
     V, S = est["real_volume"], est["psf_spectra"]
-    return int((4 + 1 + 4 + 2 + 6 + 2 + 13 * tv_iters) * V + 4 * S)
+    return int((4 + 1 + 4 + 2 + 6 + 2 + 8 * tv_iters) * V + 4 * S)
 
 
 def iteration_bytes(nz, padded_shape, dtype, backend, tv_iters) -> int:

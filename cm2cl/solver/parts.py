@@ -89,11 +89,14 @@ class Part:
             return {n: self.slot[n][: b - a] for n in names}
         return {n: self.vol[n].slabs[j] for n in names}
 
-    def slabs(self, reads=(), writes=(), scratch=()):
-        """Visit each slab: yields (j, planes, arrays) with the device arrays of ``reads``, ``writes``
-        and ``scratch``; a streamed part copies ``reads`` in before and ``writes`` out after."""
-        names = tuple(dict.fromkeys(tuple(reads) + tuple(writes) + tuple(scratch)))
-        for j, (a, b) in enumerate(self.bounds):
+    def slabs(self, reads=(), writes=(), scratch=(), edges=(), reverse=False):
+        """Visit each slab (last first with ``reverse``): yields (j, planes, arrays) with the device
+        arrays of ``reads``, ``writes``, ``scratch`` and ``edges``; a streamed part copies ``reads`` in
+        before and ``writes`` out after, and of ``edges`` only the first plane (a neighbour's halo)."""
+        names = tuple(dict.fromkeys(tuple(reads) + tuple(writes) + tuple(scratch) + tuple(edges)))
+        order = range(len(self.bounds) - 1, -1, -1) if reverse else range(len(self.bounds))
+        for j in order:
+            a, b = self.bounds[j]
             arr = self.arrays(j, names)
             if self.streamed:
                 for n in reads:
@@ -104,6 +107,9 @@ class Part:
                 for n in writes:
                     arr[n].get(ary=self.host[n][j])
                     self.moved_bytes += self.host[n][j].nbytes
+                for n in edges:
+                    arr[n][0:1].get(ary=self.host[n][j][0:1])
+                    self.moved_bytes += self.host[n][j][0].nbytes
 
     def neighbour(self, name: str, j: int, which: str):
         """The device array holding the plane next to slab ``j`` inside this part (``which`` = 'next':
