@@ -78,6 +78,8 @@ def register(sub):
     g.add_argument("--stream", choices=["auto", "always", "never"], default="auto",
                    help="stream depth slabs through the device from host memory: when the planes do not fit "
                         "(auto, default), always, or never (refuse a problem that does not fit)")
+    g.add_argument("--warm-start", action="store_true",
+                   help="series: start frame t from frame t - 1's volume (frames in order, one device)")
     g.add_argument("--scheduler", default=None,
                    help="series: run the frames on this Dask distributed scheduler (tcp://host:port) instead of "
                         "the local devices; pin each worker to a device with CM2CL_DEVICE")
@@ -214,6 +216,8 @@ def command(args) -> int:
                          "(-o OUT.ome.zarr)")
     if args.scheduler:
         raise InputError("--scheduler: only for a series written to an OME-Zarr output (-o OUT.ome.zarr)")
+    if args.warm_start:
+        raise InputError("--warm-start: only for a series written to an OME-Zarr output (-o OUT.ome.zarr)")
     args.measurement = args.measurement[0]
     if out.suffix.lower() not in (".tif", ".tiff"):
         raise InputError(f"--output '{out}': must end in .ome.tif, .tif or .tiff (or .ome.zarr for a series)")

@@ -68,6 +68,9 @@ def command(args) -> int:
     h, _ = psf_on_working_grid(args, psf, psf_off, psf_bin, series.shape, pmeta["extra"].get("axis_pixel"))
     vs, depths, how = _volume_geometry(args, pmeta, psf_bin)
     devices = devices_arg(args.device) if not args.scheduler else [None]
+    if args.warm_start and (args.scheduler or len(devices) != 1):
+        raise InputError("--warm-start: frame t starts from frame t - 1, so the frames run in order on one device "
+                         "(no --scheduler, one --device)")
     if args.scheduler:
         check_scheduler(args.scheduler)
     else:
@@ -86,7 +89,8 @@ def command(args) -> int:
     from .reconstruct import _STREAM
 
     solver_kw = {"max_memory": args.max_memory, "stream": _STREAM[args.stream]}
-    prep = {"offset": off, "psf_offset": psf_off, "bin": args.bin, "padding": args.padding}
+    prep = {"offset": off, "psf_offset": psf_off, "bin": args.bin, "padding": args.padding,
+            "warm_start": bool(args.warm_start)}
     if args.padding == "support":   # one grid for every frame, from the PSF stack's measured support
         from ..device.fft import resolve_backend
         from ..solver.forward import support_padding
@@ -116,7 +120,7 @@ def command(args) -> int:
             s = run_series(series, h, store, params=params, key=key,
                            prepare=lambda a: prepare(a, offset=off, bin_factor=args.bin, name="measurement"),
                            dtype=dt, backend=args.backend, devices=devices, scheduler=args.scheduler,
-                           progress=progress, solver_kw=solver_kw)
+                           progress=progress, solver_kw=solver_kw, warm_start=args.warm_start)
         finally:
             if bar is not None:
                 bar.close()

@@ -60,14 +60,14 @@ def _solver(key, psf, params, dtype, backend, device, solver_kw):
         return _SOLVERS[(key, device)]
 
 
-def solve_frame(key, psf, params_dict, dtype, backend, y, device=None, solver_kw=None):
+def solve_frame(key, psf, params_dict, dtype, backend, y, device=None, solver_kw=None, x0=None):
     """One frame on this process's solver for (key, device): (volume, info). Runs on Dask workers too.
-    ``solver_kw``: ADMMSolver's layout options (padded_shape, max_memory, stream)."""
+    ``solver_kw``: ADMMSolver's layout options (padded_shape, max_memory, stream); ``x0`` a warm start."""
     params = ADMMParams.from_kwargs(**params_dict)
     solver, lock = _solver(key, psf, params, np.dtype(dtype), backend, device, solver_kw)
     with lock:
         t = time.perf_counter()
-        rec = solver.solve(y)
+        rec = solver.solve(y, x0=x0)
     info = {"iterations": rec.iterations, "converged": bool(rec.info["converged"]), "stop": rec.info["stop"],
             "seconds": time.perf_counter() - t, "device": rec.info["device"],
             "objective": rec.log[-1]["objective"], "moved_bytes": rec.info["moved_bytes"]}
@@ -76,11 +76,13 @@ def solve_frame(key, psf, params_dict, dtype, backend, y, device=None, solver_kw
 
 def run_series(series: FrameSeries, psf, store: FrameStore, *, params: ADMMParams, key: str,
                prepare=lambda a: np.asarray(a, np.float64), dtype=np.float32, backend="auto", devices=(None,),
-               scheduler=None, progress=None, solver_kw=None) -> JobSummary:
+               scheduler=None, progress=None, solver_kw=None, warm_start=False) -> JobSummary:
     """Reconstruct the frames of ``series`` missing from ``store``. ``prepare`` maps a decoded frame to
     the measurement (offset, binning); ``devices`` lists the local devices (index/name/None) to use;
     ``scheduler`` a Dask scheduler address instead. ``progress(i, info)`` is called per finished frame;
-    ``solver_kw`` goes to every worker's ADMMSolver (padded_shape, max_memory, stream)."""
+    ``solver_kw`` goes to every worker's ADMMSolver (padded_shape, max_memory, stream). ``warm_start``:
+    frame t starts from frame t - 1's stored volume (read back from the store, so a resumed job gives
+    the same bits); the frames then run in order on one device."""
     todo = store.missing()
     t0 = time.perf_counter()
     summary = JobSummary(frames=len(series), computed=0, skipped=len(series) - len(todo), seconds=0.0)
@@ -99,7 +101,18 @@ def run_series(series: FrameSeries, psf, store: FrameStore, *, params: ADMMParam
         if progress is not None:
             progress(i, info)
 
-    if scheduler:
+    if warm_start:
+        if scheduler or len(list(devices)) != 1:
+            raise InputError("--warm-start: frame t starts from frame t - 1, so the frames run in order on one "
+                             "device (no --scheduler, one --device)")
+        dev = list(devices)[0]
+        for i in todo:   # ascending: frame i - 1 is in the store before frame i starts (or i == 0)
+            x0 = store.read(i - 1) if i > 0 else None
+            vol, info = solve_frame(key, psf, pd, np.dtype(dtype).name, backend, prepare(series.read(i)), dev,
+                                    solver_kw, x0)
+            info["warm"] = x0 is not None
+            finish(i, vol, info)
+    elif scheduler:
         _run_dask(series, psf, todo, pd, key, prepare, dtype, backend, scheduler, finish, solver_kw)
     else:
         _run_local(series, psf, todo, pd, key, prepare, dtype, backend, list(devices), finish, solver_kw)

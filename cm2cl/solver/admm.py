@@ -295,9 +295,26 @@ class ADMMSolver:
                              f"{self.dtype.name} can hold ({float(fi.smallest_subnormal):.3g}) and would read as "
                              "zeros; use dtype float64 or rescale the input")
 
-    def solve(self, y, callback=None, callback_every=1, weights=None) -> Reconstruction:
+    def _start_volume(self, x0, scale):
+        """``x0`` (a volume in the caller's units on the sensor field (nz, My, Mx) or the padded grid) as the
+        normalised padded start of x."""
+        x0 = validate.real_array(x0, "x0", ndims=(3,))
+        if x0.shape == (self.nz,) + self.M:
+            full = np.zeros((self.nz,) + self.P)
+            full[:, self.crop[0], self.crop[1]] = x0
+            x0 = full
+        elif x0.shape != (self.nz,) + self.P:
+            raise InputError(f"x0: shape {x0.shape} is neither the volume's {(self.nz,) + self.M} nor the padded "
+                             f"{(self.nz,) + self.P}")
+        if not np.all(np.isfinite(x0)):
+            raise InputError("x0: holds NaN or infinite values")
+        return np.maximum(np.asarray(x0, np.float64), 0) * scale
+
+    def solve(self, y, callback=None, callback_every=1, weights=None, x0=None) -> Reconstruction:
         """Reconstruct from measurement ``y``; ``weights`` (optional, the sensor's shape, finite, >= 0)
-        weigh each pixel in the data term: 0 masks a pixel (saturated, hot), 1 is the default."""
+        weigh each pixel in the data term: 0 masks a pixel (saturated, hot), 1 is the default. ``x0``
+        (optional, a volume in the caller's units, e.g. the previous frame's) starts x and its splits
+        there instead of at zero (a warm start; the duals start at zero)."""
         y = validate.real_array(y, "measurement", ndims=(2,))
         if y.shape != self.M:
             raise InputError(f"measurement: shape {y.shape} does not match the PSF's sensor grid {self.M}")
@@ -313,6 +330,10 @@ class ADMMSolver:
         ny, nx = self.P
         p0, pl0 = self.parts[0], self.parts[0].planes
         self._fill(("x", "u", "w", "eta", "rho", "v", "xi", "px", "py", "pz"))
+        if x0 is not None:
+            start = self._start_volume(x0, y_scale / self.psf_scale)
+            for name in ("x", "u", "w"):
+                self.set_volume(name, start)
         cty = np.zeros(self.P, self.dtype)
         cty[self.crop] = y_n.astype(self.dtype)
         pl0["cty"].set(cty[None])
@@ -420,7 +441,8 @@ def reconstruct(measurement, psf, *,
                 dtype=np.float32, backend: str = "auto", device=None, padded_shape=None,
                 max_slab_planes: int | None = None, devices=None, max_memory=None, stream="auto",
                 voxel_size_um=None, depths_um=None,
-                weights=None, padding: str = "full", callback=None, callback_every: int = 1) -> Reconstruction:
+                weights=None, padding: str = "full", callback=None, callback_every: int = 1,
+                x0=None) -> Reconstruction:
     """Reconstruct a 3D volume from one CM2 measurement (paper Eq. 4) on an OpenCL device.
 
     Solves ``min_x 1/2 ||C H x - y||^2 + l1 ||x||_1 + tv TV_3D(x)`` subject to ``x >= 0`` by ADMM,
@@ -503,6 +525,9 @@ def reconstruct(measurement, psf, *,
         light; the tails beyond are dropped, ``rec.info['padding']`` says how much and the voxels saved).
     callback, callback_every : callable, int, optional
         ``callback(row)`` with each log row (a dict) every ``callback_every`` iterations.
+    x0 : (nz, My, Mx) or (nz, Py, Px) array, optional
+        A warm start in the volume's units (e.g. the previous frame's ``rec.volume``): x and its splits
+        start there instead of at zero.
 
     Returns
     -------
@@ -560,7 +585,7 @@ def reconstruct(measurement, psf, *,
     solver = ADMMSolver(psf, prm, dtype=dtype, backend=backend, device=device,
                         padded_shape=padded_shape, max_slab_planes=max_slab_planes, devices=devices,
                         max_memory=max_memory, stream=stream)
-    rec = solver.solve(y, callback=callback, callback_every=callback_every, weights=weights)
+    rec = solver.solve(y, callback=callback, callback_every=callback_every, weights=weights, x0=x0)
     rec.voxel_size_um, rec.depths_um = vs, d
     rec.info["padding"] = pad_info or {"padded_shape": list(solver.P), "support_px": None}
     return rec
