@@ -12,13 +12,15 @@ inline real_t tv_at(__global const real_t *x, __global const real_t *x_next, con
 }
 
 /* After the x step, for one slab of `planes` planes:
- *   w' = max(x + rho/mu_w - l1/mu_w, 0);  rho += mu_w (x - w');  w = w'
- * Reduces into slots slot0 + (0..7): ||x - x_old||^2, ||x||^2, sum|x|, TV(x), ||x - w'||^2, ||w' - w||^2,
+ *   w' = max(x + rho/mu_w - l1 l1w[z]/mu_w, 0);  rho += mu_w (x - w');  w = w'
+ * (l1w: the weight of each plane of the slab in the l1 term).
+ * Reduces into slots slot0 + (0..7): ||x - x_old||^2, ||x||^2, sum l1w|x|, TV(x), ||x - w'||^2, ||w' - w||^2,
  * ||w'||^2, ||rho'||^2 (the last two scale the relative residuals of the stopping rule).
  * x_next is the next slab of x (for the axial difference across slabs) when has_next. */
 __kernel void update_w(__global const real_t *x, __global const real_t *x_next, const int has_next,
                        __global const real_t *x_old, __global real_t *w, __global real_t *rho,
-                       const real_t l1, const real_t mu_w, const real_t aw, const int iso,
+                       const real_t l1, __global const real_t *l1w, const real_t mu_w, const real_t aw,
+                       const int iso,
                        const int planes, const int ny, const int nx,
                        __global real_t *partials, const int pstride, __local real_t *scratch,
                        const int slot0, const int per_item, const int contiguous) {
@@ -28,14 +30,15 @@ __kernel void update_w(__global const real_t *x, __global const real_t *x_next, 
     FOR_EACH_REDUCED(i, n, per_item, contiguous, ny, nx, xx, y, z) {
         const real_t xi = x[i];
         const real_t r = rho[i];
-        const real_t wn = fmax(xi + (r - l1) * inv_mu, (real_t)0);
+        const real_t lw = l1w[z];   /* the plane's weight of the l1 term */
+        const real_t wn = fmax(xi + (r - l1 * lw) * inv_mu, (real_t)0);
         const real_t dx = xi - x_old[i], pw = xi - wn, dw = wn - w[i];
         const real_t rn = r + mu_w * pw;
         rho[i] = rn;
         w[i] = wn;
         a0 += dx * dx;
         a1 += xi * xi;
-        a2 += fabs(xi);
+        a2 += lw * fabs(xi);
         a3 += tv_at(x, x_next, has_next, i, z, y, xx, planes, ny, nx, aw, iso);
         a4 += pw * pw;
         a5 += dw * dw;

@@ -32,7 +32,8 @@ ERROR_PATTERNS = ("Invalid read", "Invalid write", "Data race", "Uniform write",
 def workload():
     """Every kernel at least once: forward/adjoint, the FFT (radices 2, 3, 4, 5, 7; lines in local memory
     and through the multi-pass kernels), the reikna path's layout kernels, ADMM iterations with TV
-    (isotropic and not), whole and in two slabs (halo paths), both reduction layouts, TV off."""
+    (isotropic and not), whole and in two slabs (halo paths), both reduction layouts, TV off, streamed
+    slabs with plane-weighted l1."""
     import numpy as np
     import pyopencl.array as cl_array
 
@@ -77,9 +78,13 @@ def workload():
             for slabs, iso in ((None, True), (2, False)):
                 s = ADMMSolver(psf.astype(dtype), ADMMParams(max_iter=3, tol=0, l1=1e-3, tv=1e-3, tv_isotropic=iso),
                                dtype=dtype, backend="cl", padded_shape=(16, 20), max_slab_planes=slabs)
-                s.contiguous = np.int32(contiguous)
+                for part in s.parts:
+                    part.contiguous = np.int32(contiguous)
                 s.solve(meas.astype(dtype))
         cm2cl.reconstruct(meas, psf, dtype=dtype, backend="cl", max_iter=2, tv=0.0, padded_shape=(16, 20))
+        # streamed slabs (halo buffers, one-plane edge copies) with plane-weighted l1
+        cm2cl.reconstruct(meas, psf, dtype=dtype, backend="cl", max_iter=2, l1=1e-3, tv=1e-3, padded_shape=(16, 20),
+                          stream=True, max_slab_planes=1, l1_plane_power=2.0)
     print("workload done")
 
 

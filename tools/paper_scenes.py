@@ -4,6 +4,11 @@ and reconstructed at cm2cl's defaults, as a user would; recall and precision ove
 the MIPs in docs/img/paper_<scene>_mip.png.
 
     python tools/paper_scenes.py [--scenes fig3_beads,fig5_scattering] [--max-iter N]
+        [--trace 50,100,200] [--variants default,tv0] [--doc docs/paper_scenes.md]
+
+``--trace`` scores the iterate at those iterations too (what more iterations buy); ``--variants`` adds
+runs with other weights: ``tv0`` = TV off (l1 only), ``dtype64`` = the default in float64, ``points`` =
+``--prior points`` (TV off, each plane's l1 weight ~ ||h_i||^2).
 
 Slow on a CPU (about 20 min per scene on 2 cores): a benchmark, not a test.
 """
@@ -11,13 +16,14 @@ Slow on a CPU (about 20 min per scene on 2 cores): a benchmark, not a test.
 from __future__ import annotations
 
 import argparse
+import json
 import time
 from pathlib import Path
 
 import numpy as np
 
-import cm2cl
 from cm2cl import analysis, simulate
+from cm2cl.solver.params import PRIORS
 
 DOCS = Path(__file__).resolve().parents[1] / "docs"
 
@@ -38,49 +44,101 @@ def by_thirds(m: dict, depths_um) -> list[tuple[float, float, int]]:
     return out
 
 
+def run_variant(name, sim, label, var, kw, marks, ts) -> dict:
+    """One reconstruction of a simulated scene, scored at the end and (``marks``) along the way."""
+    from cm2cl.solver.admm import ADMMSolver
+    from cm2cl.solver.params import ADMMParams
+
+    dtype = kw.pop("dtype", np.float32)
+    s = ADMMSolver(sim.psf, ADMMParams(**kw), dtype=dtype)
+    trace = []
+
+    def score(x):
+        m = analysis.score_beads(x, sim)
+        return m, by_thirds(m, sim.depths_um)
+
+    def cb(row):
+        if row["iter"] in marks:
+            m, th = score(np.maximum(s.get_volume("x"), 0)[:, s.crop[0], s.crop[1]])
+            trace.append((row["iter"], m["recall"], m["precision"], th))
+
+    t = time.perf_counter()
+    rec = s.solve(np.asarray(sim.measurement, np.float64), callback=cb if marks else None)
+    tr = time.perf_counter() - t
+    m, thirds = score(rec.volume)
+    if var == "default":
+        analysis.mip_png(rec.volume, DOCS / "img" / f"paper_{name}_mip.png", title=f"{name}: cm2cl defaults",
+                         gamma=0.6)
+    return dict(scene=name, variant=label, shape=f"{sim.psf.shape[0]} x {sim.psf.shape[1]} x {sim.psf.shape[2]}",
+                sim_s=ts, rec_s=tr, iterations=rec.iterations, converged=rec.info["converged"],
+                stop=rec.info["stop"], recall=m["recall"], precision=m["precision"], n_true=m["n_true"],
+                thirds=thirds, lat=m.get("lateral_rms_um", float("nan")), ax=m.get("axial_rms_um", float("nan")),
+                l1=rec.info["l1"], mib=rec.info["device_bytes"] / 2**20, trace=trace, dtype=np.dtype(dtype).name)
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--scenes", default="fig3_beads,fig5_scattering")
     ap.add_argument("--max-iter", type=int, default=None, help="default: the solver's default")
+    ap.add_argument("--trace", default="", help="comma list of iterations at which the iterate is scored too")
+    ap.add_argument("--variants", default="default", help="comma list of: default, tv0, dtype64, points")
+    ap.add_argument("--doc", default=str(DOCS / "paper_scenes.md"))
     args = ap.parse_args(argv)
     rows = []
     (DOCS / "img").mkdir(parents=True, exist_ok=True)
+    marks = {int(v) for v in args.trace.split(",") if v.strip()}
+    variants = {"default": ("defaults", {}), "tv0": ("TV off (tv 0, l1 default)", {"tv": 0.0}),
+                "dtype64": ("defaults, float64", {"dtype": np.float64}),
+                "points": ("--prior points (TV off, l1 per plane ~ ||h_i||^2)", dict(PRIORS["points"]))}
     for name in args.scenes.split(","):
         t = time.perf_counter()
         sim = simulate.simulate_scene(name)
         ts = time.perf_counter() - t
-        kw = {} if args.max_iter is None else {"max_iter": args.max_iter}
-        t = time.perf_counter()
-        rec = cm2cl.reconstruct(sim.measurement, sim.psf, voxel_size_um=sim.voxel_size_um, depths_um=sim.depths_um, **kw)
-        tr = time.perf_counter() - t
-        m = analysis.score_beads(rec.volume, sim)
-        thirds = by_thirds(m, sim.depths_um)
-        analysis.mip_png(rec.volume, DOCS / "img" / f"paper_{name}_mip.png", title=f"{name}: cm2cl defaults",
-                         gamma=0.6)
-        rows.append(dict(scene=name, shape=f"{sim.psf.shape[0]} x {sim.psf.shape[1]} x {sim.psf.shape[2]}",
-                         sim_s=ts, rec_s=tr, iterations=rec.iterations, converged=rec.info["converged"],
-                         stop=rec.info["stop"], recall=m["recall"], precision=m["precision"], n_true=m["n_true"],
-                         thirds=thirds, lat=m.get("lateral_rms_um", float("nan")),
-                         ax=m.get("axial_rms_um", float("nan")), l1=rec.info["l1"],
-                         mib=rec.info["device_bytes"] / 2**20))
-        print(rows[-1], flush=True)
+        for var in args.variants.split(","):
+            label, extra = variants[var]
+            kw = dict(extra) if args.max_iter is None else {"max_iter": args.max_iter, **extra}
+            rows.append(run_variant(name, sim, label, var, kw, marks, ts))
+            print(rows[-1], flush=True)
     from cm2cl.device import get_runtime
 
-    lines = ["# The paper's bead scenes at the defaults", "",
-             f"Made by `python tools/paper_scenes.py --scenes {args.scenes}` on {get_runtime().caps.implementation}. "
+    cmd = " ".join(["python tools/paper_scenes.py", f"--scenes {args.scenes}", f"--variants {args.variants}"]
+                   + ([f"--trace {args.trace}"] if args.trace else [])
+                   + ([f"--max-iter {args.max_iter}"] if args.max_iter else []))
+    # rows of earlier runs (other scenes or variants) are kept: the doc shows every (scene, variant) measured
+    store = Path(args.doc).with_suffix(".json")
+    old = json.loads(store.read_text()) if store.exists() else []
+    for r in rows:
+        r["cmd"] = cmd
+        r["thirds"] = [list(t) for t in r["thirds"]]
+    keys = {(r["scene"], r["variant"]) for r in rows}
+    rows = [r for r in old if (r["scene"], r["variant"]) not in keys] + rows
+    store.write_text(json.dumps(rows, indent=1, default=float))
+    cmd = "; ".join(dict.fromkeys(r["cmd"] for r in rows))
+    lines = ["# The paper's bead scenes", "",
+             f"Made by `{cmd}` on {get_runtime().caps.implementation}. "
              "Each scene is simulated with its effects (see `cm2cl simulate --list`) and reconstructed with "
-             "`cm2cl.reconstruct` at the defaults. Depth thirds split the true beads and the detections by depth.", "",
-             "| scene | planes x sensor | iterations | stop | recall | precision | recall / precision by depth "
-             "third (near, middle, far) | beads per third | lateral RMS um | axial RMS um | device MiB | s |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "the solver's defaults (and the variants named). Depth thirds split the true beads and the detections "
+             "by depth.", "",
+             "| scene | variant | planes x sensor | iterations | stop | recall | precision | recall / precision by "
+             "depth third (near, middle, far) | beads per third | lateral RMS um | axial RMS um | device MiB | s |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         th = ", ".join(f"{a:.2f} / {b:.2f}" for a, b, _ in r["thirds"])
         n = ", ".join(str(c) for _, _, c in r["thirds"])
-        lines.append(f"| {r['scene']} | {r['shape']} | {r['iterations']} | {r['stop']} | {r['recall']:.2f} | "
-                     f"{r['precision']:.2f} | {th} | {n} | {r['lat']:.1f} | {r['ax']:.1f} | {r['mib']:.0f} | "
-                     f"{r['rec_s']:.0f} |")
-    lines += [""] + [f"![{r['scene']}](img/paper_{r['scene']}_mip.png)" for r in rows] + [""]
-    (DOCS / "paper_scenes.md").write_text("\n".join(lines))
+        lines.append(f"| {r['scene']} | {r['variant']} | {r['shape']} | {r['iterations']} | {r['stop']} | "
+                     f"{r['recall']:.2f} | {r['precision']:.2f} | {th} | {n} | {r['lat']:.1f} | {r['ax']:.1f} | "
+                     f"{r['mib']:.0f} | {r['rec_s']:.0f} |")
+    traced = [r for r in rows if r["trace"]]
+    if traced:
+        lines += ["", "The iterate scored along the way (recall / precision, and recall by depth third):", "",
+                  "| scene | variant | iteration | recall | precision | recall by third |", "|---|---|---|---|---|---|"]
+        for r in traced:
+            for it, rc, pr, th in r["trace"]:
+                th = [tuple(t) for t in th]
+                lines.append(f"| {r['scene']} | {r['variant']} | {it} | {rc:.2f} | {pr:.2f} | "
+                             + " / ".join(f"{a:.2f}" for a, _, _ in th) + " |")
+    lines += [""] + [f"![{r['scene']}](img/paper_{r['scene']}_mip.png)" for r in rows if r["variant"] == "defaults"] + [""]
+    Path(args.doc).write_text("\n".join(lines))
     print("\n".join(lines))
 
 

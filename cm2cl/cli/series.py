@@ -50,7 +50,7 @@ def command(args) -> int:
     from ..io.prepare import prepare
     from ..jobs import FrameSeries, FrameStore, run_series
     from ..jobs.run import fingerprint
-    from ..solver.params import PRESETS, ADMMParams
+    from ..solver.params import PRESETS, PRIORS, ADMMParams
     from .reconstruct import _offset, _volume_geometry, psf_binning, psf_on_working_grid
 
     out = Path(args.output)
@@ -81,7 +81,7 @@ def command(args) -> int:
     params = ADMMParams.from_kwargs(**{
         **dict(l1=args.l1, tv=args.tv, tv_axial_weight=args.tv_axial_weight, tv_isotropic=not args.anisotropic,
                tv_iters=args.tv_iters, patience=args.patience, penalty=args.penalty),
-        **PRESETS[args.preset or "balanced"], **given})
+        **PRIORS[args.prior], **PRESETS[args.preset or "balanced"], **given})
     dt = np.dtype(args.dtype)
     if dt == np.float64 and not args.scheduler:
         for d in devices:

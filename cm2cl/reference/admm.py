@@ -57,6 +57,9 @@ def admm(y, psf, params=None, padded_shape=None, dtype=np.float64, workers=None,
     ctl = Control(p, ProblemScale.of(np.where(wts > 0, y * s_y, 0.0), float(np.sum((psf * s_h) ** 2)), nz),
                   callback)
     l1, tv = ctl.l1, ctl.tv
+    # each plane's l1 weight: ||h_i||^q / mean ||h_j||^q of the normalised stack (all ones for q = 0)
+    hn = np.sqrt(np.sum((psf * s_h).reshape(nz, -1) ** 2, axis=1)) ** float(p.l1_plane_power)
+    lw = (hn / hn.mean())[:, None, None]
     v = (mask * cty / (mask + ctl.mu_v)).astype(dt)  # the data split's minimiser at x = 0: the first x step sees the data
     sq = lambda a: float(np.sum(np.asarray(a, np.float64) ** 2))  # noqa: E731
     for it in range(1, p.max_iter + 1):
@@ -71,7 +74,7 @@ def admm(y, psf, params=None, padded_shape=None, dtype=np.float64, workers=None,
         dx2 = sq(x_new.astype(np.float64) - x)
         x = x_new
         # w step: l1 + non-negativity
-        w_new = np.maximum(x + rho / mu_w - l1 / mu_w, 0).astype(dt)
+        w_new = np.maximum(x + rho / mu_w - l1 * lw / mu_w, 0).astype(dt)
         rho += mu_w * (x - w_new)
         # v step: crop-aware data update
         v_new = ((mask * cty + mu_v * hx + xi) / (mask + mu_v)).astype(dt)
@@ -84,7 +87,7 @@ def admm(y, psf, params=None, padded_shape=None, dtype=np.float64, workers=None,
             u_new = z
         u_new = u_new.astype(dt)
         eta += mu_u * (x - u_new)
-        done = ctl.update(it, data2=float(np.sum(wts * (crop(hx.astype(np.float64), M) - ys) ** 2)), l1=float(np.abs(x).sum()),
+        done = ctl.update(it, data2=float(np.sum(wts * (crop(hx.astype(np.float64), M) - ys) ** 2)), l1=float(np.sum(lw * np.abs(x))),
                           tv=tv_value(x, p.tv_axial_weight, p.tv_isotropic), dx2=dx2, x2=sq(x),
                           rv2=sq(hx - v_new), dv2=sq(v_new - v), ru2=sq(x - u_new), du2=sq(u_new - u),
                           rw2=sq(x - w_new), dw2=sq(w_new - w), hx2=sq(hx), v2=sq(v_new), xi2=sq(xi),

@@ -54,6 +54,13 @@ def pixel_weights(weights, shape) -> np.ndarray:
     return w
 
 
+def plane_weights(psf_n, power: float) -> np.ndarray:
+    """Each plane's weight in the l1 term: ||h_i||^power / mean_j ||h_j||^power (ones for power 0)."""
+    norms = np.sqrt(np.sum(np.asarray(psf_n, np.float64).reshape(psf_n.shape[0], -1) ** 2, axis=1))
+    c = norms ** float(power)
+    return c / np.mean(c)
+
+
 def _padded_arg(padded_shape) -> tuple[int, int]:
     """``padded_shape`` as two positive integers, or an InputError naming it."""
     try:
@@ -157,6 +164,11 @@ class ADMMSolver:
                 part.planes["hn2"] *= self.dtype.type(self.psf_scale**2)
         psf_n = psf * self.psf_scale  # the normalised stack the solver sees (float64, host)
         self.spectral_mean = float(np.sum(psf_n * psf_n))
+        self.l1_plane_weights = plane_weights(psf_n, params.l1_plane_power)
+        for part in self.parts:
+            part.l1w = [part.rt.zeros(b - a, self.dtype) for a, b in part.bounds]
+            for (a, b), arr in zip(part.bounds, part.l1w):
+                arr.set(self.l1_plane_weights[part.z0 + a:part.z0 + b].astype(self.dtype))
         self.psf_scale *= self.psf_prescale  # the whole scale from the caller's PSF
         # buffers, plus the FFT libraries' scratch of the plans each part uses
         self.allocated_bytes = sum(part.device_bytes + part.partials.nbytes + part.out.nbytes + part.plan2d.scratch_bytes
@@ -360,8 +372,8 @@ class ADMMSolver:
             for i, part, j, n, a in self._each_slab(("x", "g", "w", "rho"), ("w", "rho")):
                 xn, has_next = self._next(i, j, "x")
                 self._red(part, "update_w", a["x"].size, DX2, a["x"].data, (xn if has_next else a["x"]).data,
-                          I(has_next), a["g"].data, a["w"].data, a["rho"].data, R(ctl.l1), R(mu_w), aw, iso,
-                          I(n), I(ny), I(nx))
+                          I(has_next), a["g"].data, a["w"].data, a["rho"].data, R(ctl.l1), part.l1w[j].data,
+                          R(mu_w), aw, iso, I(n), I(ny), I(nx))
             # ---- v split (the plane lives on part 0)
             self._red(p0, "update_v", ny * nx, RV2, pl0["v"].data, pl0["xi"].data, pl0["hx"].data,
                       pl0["cty"].data, pl0["cw"].data, R(mu_v), I(ny), I(nx))
@@ -417,6 +429,7 @@ class ADMMSolver:
             info={"device": self.rt.caps.name, "platform": self.rt.caps.platform, "dtype": self.dtype.name,
                   "backend": self.backend, "padded_shape": self.P,
                   "slabs": sum(len(part.bounds) for part in self.parts), "layout": layout, **ctl.summary(),
+                  "l1_plane_weights": [float(c) for c in self.l1_plane_weights],
                   "device_bytes": int(self.allocated_bytes), "host_bytes": int(self.host_bytes),
                   "moved_bytes": int(self.moved_bytes)})
 
@@ -434,6 +447,7 @@ def reconstruct(measurement, psf, *,
                 patience: int = _D.patience, penalty: str = _D.penalty,
                 mu_v: float | None = _D.mu_v, mu_u: float | None = _D.mu_u, mu_w: float | None = _D.mu_w,
                 l1_noise_ratio: float = _D.l1_noise_ratio, tv_noise_ratio: float = _D.tv_noise_ratio,
+                l1_plane_power: float = _D.l1_plane_power,
                 balance_factor: float = _D.balance_factor, balance_ratio: float = _D.balance_ratio,
                 adapt_ratio: float = _D.adapt_ratio,
                 adapt_max_step: float = _D.adapt_max_step, adapt_until: int = _D.adapt_until,
@@ -492,6 +506,10 @@ def reconstruct(measurement, psf, *,
         scale (see :class:`cm2cl.solver.control.ProblemScale`).
     l1_noise_ratio, tv_noise_ratio : float
         Default weights relative to the volume-domain noise level (when ``l1`` / ``tv`` are None).
+    l1_plane_power : float
+        Plane i's l1 weight is ``l1`` times ||h_i||^q / mean_j ||h_j||^q (q this power, 0..4; default 0:
+        all planes alike). 2 shrinks a point source equally in every plane, keeping emitters in planes
+        whose PSF spreads its light (``rec.info['l1_plane_weights']``).
     normalize : bool
         Normalise y and H as above (default True).
     dtype : float32 (default) or float64 (devices with fp64 only).
@@ -552,7 +570,8 @@ def reconstruct(measurement, psf, *,
     prm = ADMMParams(l1=l1, tv=tv, tv_axial_weight=tv_axial_weight, tv_isotropic=tv_isotropic,
                      tv_iters=tv_iters, max_iter=max_iter, tol=tol, tol_change=tol_change, patience=patience,
                      penalty=penalty, mu_v=mu_v, mu_u=mu_u, mu_w=mu_w, l1_noise_ratio=l1_noise_ratio,
-                     tv_noise_ratio=tv_noise_ratio, balance_factor=balance_factor, balance_ratio=balance_ratio,
+                     tv_noise_ratio=tv_noise_ratio, l1_plane_power=l1_plane_power,
+                     balance_factor=balance_factor, balance_ratio=balance_ratio,
                      adapt_ratio=adapt_ratio,
                      adapt_max_step=adapt_max_step, adapt_until=adapt_until, mu_range=mu_range,
                      normalize=normalize)
