@@ -82,6 +82,11 @@ def register(sub):
     g.add_argument("--stream", choices=["auto", "always", "never"], default="auto",
                    help="stream depth slabs through the device from host memory: when the planes do not fit "
                         "(auto, default), always, or never (refuse a problem that does not fit)")
+    g.add_argument("--tile", type=int, nargs=2, metavar=("TY", "TX"), default=None,
+                   help="single frame: solve lateral tiles of about TY x TX pixels, each with a halo of measurement "
+                        "around it, and blend them (approximate; for a PSF small against the field)")
+    g.add_argument("--halo", type=int, default=None,
+                   help="with --tile: the halo in pixels (default: the PSF's reach from its axis; smaller is refused)")
     g.add_argument("--warm-start", action="store_true",
                    help="series: start frame t from frame t - 1's volume (frames in order, one device)")
     g.add_argument("--scheduler", default=None,
@@ -289,10 +294,13 @@ def command(args) -> int:
     with outset:   # an OSError while writing becomes one line; nothing is left behind
         try:
             devs = devices_arg(args.device)
-            rec = reconstruct(y, h, dtype=dt, backend=args.backend, device=devs[0],
-                              devices=devs if len(devs) > 1 else None, max_memory=args.max_memory,
-                              stream=_STREAM[args.stream], weights=weights, padding=args.padding,
-                              callback=progress, voxel_size_um=vs, depths_um=depths, **params)
+            if args.tile:
+                rec = _tiled(y, h, args, dt, devs, weights, vs, depths, params)
+            else:
+                rec = reconstruct(y, h, dtype=dt, backend=args.backend, device=devs[0],
+                                  devices=devs if len(devs) > 1 else None, max_memory=args.max_memory,
+                                  stream=_STREAM[args.stream], weights=weights, padding=args.padding,
+                                  callback=progress, voxel_size_um=vs, depths_um=depths, **params)
         finally:
             progress.close()
         rec.info["pixels"] = {**pixels, "masked": names}
@@ -333,6 +341,33 @@ def psf_on_working_grid(args, psf, psf_off, psf_bin, sensor, axis=None):
     return h, note
 
 
+def _tiled(y, h, args, dt, devs, weights, vs, depths, params):
+    """A single frame as lateral tiles (cm2cl.jobs.tiles), wrapped as a Reconstruction for the writer."""
+    from ..jobs.tiles import reconstruct_tiled
+    from ..solver.result import Reconstruction
+
+    if len(devs) > 1 or weights is not None or args.padding != "full" or args.padded:
+        raise InputError("--tile: not with several devices, --mask, --padding support or --padded")
+    last = {}
+
+    def progress(k, n, rec):
+        last.update(rec=rec)
+        if not args.quiet:
+            print(f"cm2cl: tile {k}/{n}: {rec.iterations} iterations, {rec.info['stop']}", file=sys.stderr)
+
+    vol, info = reconstruct_tiled(y, h, tuple(args.tile), args.halo, dtype=dt, backend=args.backend,
+                                  device=devs[0], progress=progress, **params)
+    rec = last["rec"]
+    out = Reconstruction(volume_padded=vol, crop=(slice(0, vol.shape[1]), slice(0, vol.shape[2])), log=rec.log,
+                         scaling={"psf_scale": 1.0, "y_scale": 1.0}, params=rec.params,
+                         info={**rec.info, "tiles": info, "l1": info["l1"], "tv": info["tv"],
+                               "noise_x": info["noise_x"], "noise_sigma": info["noise_sigma"],
+                               "converged": all(info["converged"]),
+                               "stop": f"{sum(info['converged'])} of {info['tiles']} tiles converged"})
+    out.voxel_size_um, out.depths_um = vs, depths
+    return out
+
+
 def _plan(args) -> int:
     """``--dry-run``: the plan from the headers only (layout of the planes over the devices, device and
     host memory, bytes moved per iteration); exit 0 when it fits, 2 when not."""
@@ -354,6 +389,17 @@ def _plan(args) -> int:
         problem = None
     except DeviceError as exc:
         P, layout, problem = None, [], str(exc)
+    if args.tile:   # the memory plan is a tile's: its largest window (the PSF's reach needs its pixels)
+        from ..io.prepare import bin_image
+        from ..jobs.tiles import plan_tiles
+
+        h = np.asarray(io.read_tiff(args.psf)[0], np.float64)
+        h = h[None] if h.ndim == 2 else h
+        if args.bin > 1 and h.shape[1:] == tuple(ms):
+            h = np.stack([bin_image(p, args.bin) for p in h])
+        tp = plan_tiles(sensor, h, tuple(args.tile), args.halo)
+        print("tiles: " + tp.describe())
+        sensor = (max(b - a for (a, b), _ in tp.windows), max(d - c for _, (c, d) in tp.windows))
     print(f"plan: {nz} planes x {sensor[0]} x {sensor[1]} sensor ({ms[0]} x {ms[1]} binned {args.bin}x)"
           + (f", padded {P[0]} x {P[1]} (2M - 1; --padding support may shrink it)" if P else "")
           + f", {dt.name}, FFT {backend}")
