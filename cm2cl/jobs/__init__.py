@@ -1,10 +1,12 @@
-"""Jobs of many frames (issue 9, part): a time series read frame by frame from TIFF headers
+"""Jobs of many frames and of large frames: a time series read frame by frame from TIFF headers
 (:mod:`.frames`), an OME-Zarr output whose frames count as done only when wholly written, refused when it
-holds another job, and resumable (:mod:`.store`), and the executors that spread frames over the local
-OpenCL devices or a Dask cluster, each device building its PSF spectra once (:mod:`.run`)."""
+holds another job, and resumable (:mod:`.store`), the executors that spread frames over the local
+OpenCL devices or a Dask cluster, each device building its PSF spectra once, with an optional warm start
+(:mod:`.run`), and lateral tiles of one frame (:mod:`.tiles`)."""
 
 from .frames import FrameSeries
 from .run import JobSummary, run_series
 from .store import FrameStore
+from .tiles import plan_tiles, reconstruct_tiled
 
-__all__ = ["FrameSeries", "FrameStore", "JobSummary", "run_series"]
+__all__ = ["FrameSeries", "FrameStore", "JobSummary", "run_series", "plan_tiles", "reconstruct_tiled"]

@@ -1,6 +1,6 @@
 """The reconstruction: the forward operator H and its adjoint (paper Eq. 3), the ADMM solver
-(Eq. 4), its parameters and iteration control (penalties, stopping), the result, and the
-device memory model."""
+(Eq. 4), where its depth planes live (resident or streamed parts on one or more devices), its
+parameters and iteration control (penalties, stopping), the result, and the memory model and planner."""
 
 from .admm import ADMMSolver, reconstruct  # noqa: F401
 from .forward import ForwardModel  # noqa: F401
