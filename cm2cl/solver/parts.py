@@ -50,10 +50,8 @@ class Part:
         self.max_planes = max(b - a for a, b in self.bounds)
         shapes = {n: (self.P, self.dtype) for n in REAL} | {n: (self.spec_plane, self.cdtype) for n in COMPLEX}
         if self.streamed:
-            import pyopencl.array as cla
-
             self.host = {n: [np.zeros((b - a,) + s, d) for a, b in self.bounds] for n, (s, d) in shapes.items()}
-            self.slot = {n: cla.zeros(rt.queue, (self.max_planes,) + s, d) for n, (s, d) in shapes.items()}
+            self.slot = {n: rt.zeros((self.max_planes,) + s, d) for n, (s, d) in shapes.items()}
             self.vol = None
         else:
             self.vol = {n: Volume(rt, self.bounds, s, d) for n, (s, d) in shapes.items()}
