@@ -33,6 +33,8 @@ from .memory import memory_estimate, plan_layout
  RV2, SV2, DATA2, HX2, V2, XI2,                # update_v
  RU2, SU2, U2, ETA2) = range(18)               # tv_finish
 NSLOTS = 18
+#: sums each fused kernel reduces (its __local scratch holds this many values per work-item)
+SUMS = {"update_w": RV2 - DX2, "update_v": RU2 - RV2, "tv_finish": NSLOTS - RU2}
 
 log = logging.getLogger(__name__)
 #: elements each work-item of a reduction handles (PoCL on 2 cores: 64 beat 16 and 256 by
@@ -174,7 +176,7 @@ class ADMMSolver:
         L = part.local[name]
         groups = -(-int(n) // (L * PER_ITEM))
         part.k[name](part.rt.queue, (groups * L,), (L,), *args, part.partials.data, np.int32(part.pstride),
-                     kernels.local_memory(L * self.dtype.itemsize), np.int32(slot), np.int32(PER_ITEM),
+                     kernels.local_memory(SUMS[name] * L * self.dtype.itemsize), np.int32(slot), np.int32(PER_ITEM),
                      part.contiguous)
 
     def _next(self, i, j, name):
