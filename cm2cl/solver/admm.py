@@ -18,6 +18,7 @@ import numpy as np
 from .. import validate
 from ..device import kernels
 from ..device.runtime import get_runtime
+from ..device.volume import fill, scale
 from ..errors import DeviceError, InputError
 from .forward import centered_psf, choose_padded_shape, crop_offsets, min_padded_shape
 from ..device.fft import complex_dtype, get_plan, resolve_backend
@@ -155,7 +156,7 @@ class ADMMSolver:
         if params.normalize:
             for part in self.parts:
                 part.scale("hs", self.psf_scale)
-                part.planes["hn2"] *= self.dtype.type(self.psf_scale**2)
+                scale(part.rt, part.planes["hn2"], self.psf_scale**2)
         psf_n = psf * self.psf_scale  # the normalised stack the solver sees (float64, host)
         self.spectral_mean = float(np.sum(psf_n * psf_n))
         self.psf_scale *= self.psf_prescale  # the whole scale from the caller's PSF
@@ -243,7 +244,7 @@ class ADMMSolver:
         for part in self.parts:
             for n in names:
                 if n in part.planes:
-                    part.planes[n].fill(value)
+                    fill(part.rt, part.planes[n], value)
                 else:
                     part.fill(n, value)
 
@@ -330,7 +331,7 @@ class ADMMSolver:
             self.x_step(mu_v, mu_u, mu_w)
             for part in self.parts:
                 part.swap("x", "g")   # x: new iterate, g: previous one (then scratch)
-                part.partials.fill(0)
+                fill(part.rt, part.partials)
             # ---- w split (+ objective terms of x)
             for i, part, j, n, a in self._each_slab(("x", "g", "w", "rho"), ("w", "rho")):
                 xn, has_next = self._next(i, j, "x")
