@@ -183,7 +183,8 @@ def main(argv=None) -> int:
     bhead = ["install", "programs built: s", "slowest build s", "first launches: s",
              "slowest first launches (s)", "FFT specialisations", "simulation s", "reconstruction s"]
     brows = [breakdown(label, t) for label, t in zip(labels, traces)]
-    impl = "; ".join(sorted({f"{x['device']}, {x['implementation']}, pyopencl {x['pyopencl']}" for x in infos}))
+    impl = "; ".join(sorted({f"{x['device']}, {x['implementation']}; installed: pyopencl {x['pyopencl']}, "
+                             f"pocl-binary-distribution {x['pocl-binary-distribution']}" for x in infos}))
     text = (f"`cm2cl demo` from start to exit, {a.repeat} cold + warm pairs per install, medians; cold = a new "
             "empty PoCL kernel cache (POCL_CACHE_DIR), warm = the same cache again. Device: "
             f"{impl}; {os.cpu_count()} host cores. `python tools/bench_coldstart.py`\n\n"
