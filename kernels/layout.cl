@@ -41,3 +41,9 @@ __kernel void copy_real(__global real_t *dst, __global const real_t *src, const 
     const size_t i = get_global_id(0);
     if (i < n) dst[i] = src[i];
 }
+
+/* a[i] *= c for i < n reals, in place (a complex array is 2n reals: both parts scaled). */
+__kernel void scale_real(__global real_t *a, const real_t c, const ulong n) {
+    const size_t i = get_global_id(0);
+    if (i < n) a[i] = c * a[i];
+}

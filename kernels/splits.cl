@@ -1,6 +1,7 @@
 /* The w split (l1 + non-negativity) and the v split (crop-aware data term) of the ADMM, each
  * fused with its dual update and with the reductions the log and the stopping rule need.
- * Reductions use a grid-stride loop over the slab (global size = groups * local size). */
+ * Reductions use a grid-stride loop over the slab (global size = groups * local size); `scratch`
+ * holds (number of sums) x local size values (reduce_to in common.cl). */
 
 /* TV integrand of x at element i of a slab (forward differences, Neumann boundary). */
 inline real_t tv_at(__global const real_t *x, __global const real_t *x_next, const int has_next,
@@ -45,14 +46,8 @@ __kernel void update_w(__global const real_t *x, __global const real_t *x_next, 
         a6 += wn * wn;
         a7 += rn * rn;
     }
-    reduce_to(partials, pstride, scratch, a0, slot0 + 0);
-    reduce_to(partials, pstride, scratch, a1, slot0 + 1);
-    reduce_to(partials, pstride, scratch, a2, slot0 + 2);
-    reduce_to(partials, pstride, scratch, a3, slot0 + 3);
-    reduce_to(partials, pstride, scratch, a4, slot0 + 4);
-    reduce_to(partials, pstride, scratch, a5, slot0 + 5);
-    reduce_to(partials, pstride, scratch, a6, slot0 + 6);
-    reduce_to(partials, pstride, scratch, a7, slot0 + 7);
+    const real_t sums[8] = {a0, a1, a2, a3, a4, a5, a6, a7};
+    reduce_to(partials, pstride, scratch, sums, 8, slot0);
 }
 
 /* The v split on the padded plane (py, px), sensor window (my, mx) at (oy, ox):
@@ -86,10 +81,6 @@ __kernel void update_v(__global real_t *v, __global real_t *xi, __global const r
         a4 += vn * vn;
         a5 += xn * xn;
     }
-    reduce_to(partials, pstride, scratch, a0, slot0 + 0);
-    reduce_to(partials, pstride, scratch, a1, slot0 + 1);
-    reduce_to(partials, pstride, scratch, a2, slot0 + 2);
-    reduce_to(partials, pstride, scratch, a3, slot0 + 3);
-    reduce_to(partials, pstride, scratch, a4, slot0 + 4);
-    reduce_to(partials, pstride, scratch, a5, slot0 + 5);
+    const real_t sums[6] = {a0, a1, a2, a3, a4, a5};
+    reduce_to(partials, pstride, scratch, sums, 6, slot0);
 }

@@ -89,8 +89,6 @@ __kernel void tv_finish(__global real_t *u, __global real_t *eta, __global const
         a2 += un * un;
         a3 += en * en;
     }
-    reduce_to(partials, pstride, scratch, a0, slot0 + 0);
-    reduce_to(partials, pstride, scratch, a1, slot0 + 1);
-    reduce_to(partials, pstride, scratch, a2, slot0 + 2);
-    reduce_to(partials, pstride, scratch, a3, slot0 + 3);
+    const real_t sums[4] = {a0, a1, a2, a3};
+    reduce_to(partials, pstride, scratch, sums, 4, slot0);
 }

@@ -70,3 +70,46 @@ def test_work_group_size_is_queried_per_kernel(rt):
 def test_kernel_sources_ship_with_the_package():
     names = {p.name for p in kernels.kernel_dir().iterdir()}
     assert {"common.cl", "fft_conv.cl", "layout.cl"} <= names
+
+
+def test_a_group_of_files_is_one_program(rt):
+    """The files of a group share one program (one build on a cold start); a kernel of any of them
+    comes from it, and other files stay on their own."""
+    group = kernels.GROUPS[0]
+    prg = kernels.program(rt, group[0], np.float32)
+    assert all(kernels.program(rt, f, np.float32) is prg for f in group)
+    assert kernels.kernel(rt, "xstep.cl", "xstep_hx", np.float32).program.int_ptr == prg.int_ptr
+    assert kernels.group_of("morphology.cl") == ("morphology.cl",)
+    assert kernels.program(rt, "morphology.cl", np.float32) is not prg
+
+
+def test_build_failure_in_a_group_names_its_files(rt, monkeypatch):
+    monkeypatch.setattr(kernels, "GROUPS", (("layout.cl", "broken.cl"),))
+    monkeypatch.setitem(kernels._SOURCES, "broken.cl", "__kernel void f(__global real_t *a) { a[0] = undefined_name; }")
+    with pytest.raises(KernelBuildError) as err:
+        kernels.program(rt, "broken.cl", np.float32)
+    assert "kernels/layout.cl + kernels/broken.cl" in str(err.value) and "undefined_name" in str(err.value)
+    assert "broken.cl:1" in str(err.value)   # the compiler's log names the file and line
+
+
+def test_fill_and_scale_match_numpy(rt, dtype):
+    """fill and scale (no pyopencl elementwise kernels) on real and complex arrays; fill also on a view at
+    an offset into its buffer."""
+    import pyopencl.array as cla
+
+    from cm2cl.device.volume import fill, scale
+
+    real = np.dtype(dtype)
+    for dt in (real, np.result_type(real, np.complex64)):
+        rng = np.random.default_rng(1)
+        host = rng.standard_normal(1001).astype(dt) + (1j * rng.standard_normal(1001) if dt.kind == "c" else 0)
+        host = host.astype(dt)
+        a = cla.to_device(rt.queue, host)
+        scale(rt, a, 0.37)
+        want = host * real.type(0.37)
+        assert np.array_equal(a.get(), want), dt
+        fill(rt, a[3:900], 2.5)
+        want[3:900] = 2.5
+        assert np.array_equal(a.get(), want), dt
+        fill(rt, a)
+        assert not a.get().any(), dt

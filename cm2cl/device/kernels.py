@@ -3,8 +3,9 @@
 Sources are the ``kernels/*.cl`` files, shipped in the wheel as the package
 ``cm2cl.kernel_src`` (in a source checkout without install, read from ``../kernels``). Each file is
 prepended with ``common.cl`` and built lazily, once per (runtime, file, real type, defines),
-with ``-D REAL=float|double``. Build failures raise :class:`KernelBuildError` with the file
-name and the compiler log. Fast-math options are never used.
+with ``-D REAL=float|double``; the files of one of the :data:`GROUPS` are built together as one
+program. Build failures raise :class:`KernelBuildError` with the file name and the compiler log.
+Fast-math options are never used.
 """
 
 from __future__ import annotations
@@ -17,6 +18,12 @@ import numpy as np
 from ..errors import KernelBuildError
 
 _SOURCES: dict[str, str] = {}
+
+#: Files built together as one program (a kernel of any of them comes from the group's program):
+#: the forward model and the solver use all of them, and PoCL spends about 0.12 s on every program
+#: before it reaches the source (its OpenCL C headers), so one program instead of six saves 0.6 s of
+#: a cold start (docs/benchmarks.md, "Cold start").
+GROUPS = (("layout.cl", "fft_conv.cl", "xstep.cl", "splits.cl", "tv.cl", "reduce.cl"),)
 
 
 def kernel_dir():
@@ -51,29 +58,36 @@ def build_options(dtype, defines: dict | None = None) -> list[str]:
     return opts
 
 
+def group_of(name: str) -> tuple:
+    """The files built in one program with ``kernels/<name>``: its group, or the file alone."""
+    return next((g for g in GROUPS if name in g), (name,))
+
+
 def program(rt, name: str, dtype, defines: dict | None = None):
-    """The built program for ``kernels/<name>`` on runtime ``rt`` (cached on the runtime)."""
+    """The built program holding ``kernels/<name>`` (with the rest of its group) on runtime ``rt``
+    (cached on the runtime)."""
     import pyopencl as cl
 
     opts = build_options(dtype, defines)
+    files = group_of(name)
 
     def build():
-        text = source("common.cl") + "\n#line 1\n" + source(name)
+        text = source("common.cl") + "".join(f'\n#line 1 "{f}"\n' + source(f) for f in files)
         try:
             return cl.Program(rt.context, text).build(options=opts)
         except cl.RuntimeError as exc:  # build failure: pyopencl puts the log in the message
             raise KernelBuildError(
-                f"OpenCL build of kernels/{name} failed on '{rt.caps.name}' "
+                f"OpenCL build of {' + '.join('kernels/' + f for f in files)} failed on '{rt.caps.name}' "
                 f"(options {' '.join(opts)}):\n{exc}"
             ) from exc
 
-    return rt.cached(("program", name, tuple(opts)), build)
+    return rt.cached(("program", files, tuple(opts)), build)
 
 
 def kernel(rt, name: str, kernel_name: str, dtype, defines: dict | None = None):
     """A cached kernel object ``kernel_name`` from ``kernels/<name>``."""
     opts = tuple(build_options(dtype, defines))
-    return rt.cached(("kernel", name, opts, kernel_name),
+    return rt.cached(("kernel", group_of(name), opts, kernel_name),
                      lambda: getattr(program(rt, name, dtype, defines), kernel_name))
 
 

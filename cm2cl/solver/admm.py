@@ -18,6 +18,7 @@ import numpy as np
 from .. import validate
 from ..device import kernels
 from ..device.runtime import get_runtime
+from ..device.volume import fill, scale
 from ..errors import DeviceError, InputError
 from .forward import centered_psf, choose_padded_shape, crop_offsets, min_padded_shape
 from ..device.fft import complex_dtype, get_plan, resolve_backend
@@ -33,6 +34,8 @@ from .memory import fft_scratch_per_plane, memory_estimate, plan_layout
  RV2, SV2, DATA2, HX2, V2, XI2,                # update_v
  RU2, SU2, U2, ETA2) = range(18)               # tv_finish
 NSLOTS = 18
+#: sums each fused kernel reduces (its __local scratch holds this many values per work-item)
+SUMS = {"update_w": RV2 - DX2, "update_v": RU2 - RV2, "tv_finish": NSLOTS - RU2}
 
 log = logging.getLogger(__name__)
 #: elements each work-item of a reduction handles (PoCL on 2 cores: 64 beat 16 and 256 by
@@ -161,7 +164,7 @@ class ADMMSolver:
         if params.normalize:
             for part in self.parts:
                 part.scale("hs", self.psf_scale)
-                part.planes["hn2"] *= self.dtype.type(self.psf_scale**2)
+                scale(part.rt, part.planes["hn2"], self.psf_scale**2)
         psf_n = psf * self.psf_scale  # the normalised stack the solver sees (float64, host)
         self.spectral_mean = float(np.sum(psf_n * psf_n))
         self.l1_plane_weights = plane_weights(psf_n, params.l1_plane_power)
@@ -190,7 +193,7 @@ class ADMMSolver:
         L = part.local[name]
         groups = -(-int(n) // (L * PER_ITEM))
         part.k[name](part.rt.queue, (groups * L,), (L,), *args, part.partials.data, np.int32(part.pstride),
-                     kernels.local_memory(L * self.dtype.itemsize), np.int32(slot), np.int32(PER_ITEM),
+                     kernels.local_memory(SUMS[name] * L * self.dtype.itemsize), np.int32(slot), np.int32(PER_ITEM),
                      part.contiguous)
 
     def _next(self, i, j, name):
@@ -259,7 +262,7 @@ class ADMMSolver:
         for part in self.parts:
             for n in names:
                 if n in part.planes:
-                    part.planes[n].fill(value)
+                    fill(part.rt, part.planes[n], value)
                 else:
                     part.fill(n, value)
 
@@ -367,7 +370,7 @@ class ADMMSolver:
             self.x_step(mu_v, mu_u, mu_w)
             for part in self.parts:
                 part.swap("x", "g")   # x: new iterate, g: previous one (then scratch)
-                part.partials.fill(0)
+                fill(part.rt, part.partials)
             # ---- w split (+ objective terms of x)
             for i, part, j, n, a in self._each_slab(("x", "g", "w", "rho"), ("w", "rho")):
                 xn, has_next = self._next(i, j, "x")

@@ -161,5 +161,4 @@ class Part:
             for h in self.host[name]:
                 h *= self.dtype.type(factor)
         else:
-            for s in self.vol[name].slabs:
-                s *= self.dtype.type(factor)
+            self.vol[name].scale(factor)
