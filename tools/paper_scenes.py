@@ -23,7 +23,6 @@ from pathlib import Path
 import numpy as np
 
 from cm2cl import analysis, simulate
-from cm2cl.solver.params import PRIORS
 
 DOCS = Path(__file__).resolve().parents[1] / "docs"
 
@@ -89,7 +88,7 @@ def main(argv=None):
     marks = {int(v) for v in args.trace.split(",") if v.strip()}
     variants = {"default": ("defaults", {}), "tv0": ("TV off (tv 0, l1 default)", {"tv": 0.0}),
                 "dtype64": ("defaults, float64", {"dtype": np.float64}),
-                "points": ("--prior points (TV off, l1 per plane ~ ||h_i||^2)", dict(PRIORS["points"]))}
+                "points": ("TV off, l1 per plane ~ ||h_i||^2", {"tv_noise_ratio": 0.0, "l1_plane_power": 2.0})}
     for name in args.scenes.split(","):
         t = time.perf_counter()
         sim = simulate.simulate_scene(name)
