@@ -9,7 +9,7 @@ from scipy.ndimage import gaussian_filter
 import cm2cl
 from cm2cl import reference as ref
 from cm2cl.errors import InputError
-from cm2cl.jobs.tiles import plan_tiles, reconstruct_tiled, tile_weights
+from cm2cl.jobs.tiles import operator_norm, plan_tiles, reconstruct_tiled, tile_weights
 
 M = (96, 120)
 
@@ -118,3 +118,28 @@ def test_cli_tiles_and_their_plan(rt, tmp_path, capsys):
     assert main(base + ["-o", str(tmp_path / "u.ome.tif"), "--halo", "2"]) == 2
     assert "halo: 2 x 2 px is smaller than the PSF's reach" in capsys.readouterr().err
     assert not (tmp_path / "u.ome.tif").exists()
+
+
+def test_operator_norm_is_the_largest_singular_value():
+    """The whole frame's ||H|| that the tiles divide by: the largest singular value of x -> sum_i h_i * x_i
+    (circular on the 2M - 1 grid), from a dense matrix; for a stack with negative values (offset
+    subtracted) too, where the f = 0 shortcut of a non-negative stack would be wrong."""
+    import scipy.fft as sfft
+
+    rng = np.random.default_rng(7)
+    nz, my, mx = 2, 5, 6
+    grid = tuple(sfft.next_fast_len(2 * m - 1, real=True) for m in (my, mx))
+    signed = rng.random((nz, my, mx))
+    signed -= 0.9 * signed.mean(axis=(1, 2), keepdims=True)     # little left at f = 0
+    for h in (rng.random((nz, my, mx)), signed):
+        cols = []
+        for i in range(nz):
+            for k in range(grid[0] * grid[1]):
+                e = np.zeros(grid)
+                e.flat[k] = 1.0
+                pad = np.zeros(grid)
+                pad[:my, :mx] = h[i]
+                cols.append(np.real(np.fft.ifft2(np.fft.fft2(pad) * np.fft.fft2(e))).ravel())
+        sigma = np.linalg.svd(np.array(cols).T, compute_uv=False)[0]
+        assert abs(operator_norm(h) - sigma) < 1e-9 * sigma
+    assert np.sqrt(np.sum(signed.sum(axis=(1, 2)) ** 2)) < 0.8 * operator_norm(signed)   # the f = 0 shortcut fails

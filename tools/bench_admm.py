@@ -46,7 +46,7 @@ def fft_pass(s):
 def problem(my, mx, nz, rng):
     psf = np.zeros((nz, my, mx), np.float32)
     for i in range(nz):  # a 3x3 array of foci whose spacing changes with depth, like the CM2 PSF
-        d = int(min(my, mx) * (0.25 + 0.01 * i))
+        d = int(min(my, mx) * (0.25 + 0.15 * i / max(nz - 1, 1)))   # 0.25 + 0.01 i for 16 planes
         for a in (-1, 0, 1):
             for b in (-1, 0, 1):
                 psf[i, my // 2 + a * d, mx // 2 + b * d] = 1.0

@@ -26,7 +26,7 @@ import numpy as np
 
 from ..errors import InputError
 
-__all__ = ["TilePlan", "plan_tiles", "reconstruct_tiled"]
+__all__ = ["TilePlan", "plan_tiles", "reconstruct_tiled", "operator_norm"]
 
 
 @dataclass(frozen=True)
@@ -121,6 +121,21 @@ def tile_weights(plan: TilePlan):
     return out
 
 
+def operator_norm(h: np.ndarray) -> float:
+    """||H|| of the whole frame's forward model, sqrt(max_f sum_i |H_i(f)|^2) (what the solver divides
+    by). A non-negative stack peaks at f = 0, where it is sum_i (sum h_i)^2; a stack with negative values
+    (offset subtracted) is transformed plane by plane on the whole frame's 2M - 1 grid (float64, host)."""
+    if h.min() >= 0:
+        return float(np.sqrt(np.sum(h.reshape(h.shape[0], -1).sum(axis=1) ** 2)))
+    import scipy.fft as sfft
+
+    grid = tuple(sfft.next_fast_len(2 * m - 1, real=True) for m in h.shape[1:])
+    power = np.zeros((grid[0], grid[1] // 2 + 1))
+    for plane in h:
+        power += np.abs(sfft.rfft2(plane, grid)) ** 2
+    return float(np.sqrt(power.max()))
+
+
 def reconstruct_tiled(measurement, psf, tile, halo=None, *, progress=None, **kw):
     """Reconstruct ``measurement`` (My, Mx) with ``psf`` (nz, My, Mx) as lateral tiles (see the module's
     doc). ``kw`` are :func:`cm2cl.reconstruct`'s (weights l1 / tv / *_noise_ratio / l1_plane_power,
@@ -140,7 +155,7 @@ def reconstruct_tiled(measurement, psf, tile, halo=None, *, progress=None, **kw)
     plan = plan_tiles(y.shape, psf, tile, halo)
     # the whole frame's normalisation and weights (module doc)
     h = np.asarray(psf, np.float64)
-    sh = 1.0 / np.sqrt(np.sum(np.abs(h).reshape(h.shape[0], -1).sum(axis=1) ** 2))   # ||H|| = 1 (h >= 0)
+    sh = 1.0 / operator_norm(h)
     ymax = float(np.max(np.abs(y)))
     sy = 1.0 / ymax if ymax > 0 else 1.0
     names = {f.name for f in fields(ADMMParams)}
