@@ -145,13 +145,12 @@ class ADMMSolver:
 
         # PSF spectra (computed on each part's device) and the ||H|| = 1 normalisation from the
         # spectral power sum_i |H_i|^2, summed over the parts in float64.
-        hc = centered_psf(psf, P)
         nf = np.uint64(self.nfreq)
         for part in self.parts:
             hn2 = part.planes["hn2"]
             for j, n, a in part.slabs(writes=("hs",), scratch=("g",)):
-                z = part.z0 + part.bounds[j][0]
-                a["g"].set(np.ascontiguousarray(hc[z:z + n], self.dtype))
+                z = part.z0 + part.bounds[j][0]   # one slab's planes on the padded grid at a time (host memory)
+                a["g"].set(centered_psf(psf[z:z + n].astype(self.dtype), P))
                 part.plan(n, self.backend).forward(a["g"], a["hs"])
                 kernels.launch(part.rt, part.k["spectral_power"], (self.nfreq,), hn2.data, a["hs"].data,
                                np.int32(n), nf, np.int32(j == 0))
@@ -420,9 +419,10 @@ class ADMMSolver:
                  ", ".join(part.rt.caps.name for part in self.parts), len(ctl.log),
                  "converged" if ctl.converged else "stopped at max_iter",
                  last["primal_rel"], last["dual_rel"], last["rel_change"], last["seconds"])
-        x = np.maximum(self._gather("x"), 0)
-        self._check_range(self.psf_scale / y_scale, float(x.max()), float(x.max()))
-        vol = (x * (self.psf_scale / y_scale)).astype(self.dtype)  # scaled in float64, the solve's dtype
+        vol = np.maximum(self._gather("x"), 0, dtype=self.dtype)
+        self._check_range(self.psf_scale / y_scale, float(vol.max()), float(vol.max()))
+        for plane in vol:   # scaled in float64, rounded to the solve's dtype; in place, a plane at a time
+            plane[...] = plane.astype(np.float64) * (self.psf_scale / y_scale)
         layout = [{"device": part.rt.caps.name, "planes": [part.z0, part.z1], "streamed": part.streamed,
                    "slab_planes": part.max_planes} for part in self.parts]
         return Reconstruction(
