@@ -44,15 +44,18 @@ def close(a, b, dtype):
     return err
 
 
-def test_streamed_slabs_equal_the_whole_solve(rt, dtype):
+@pytest.mark.parametrize("overlap", [True, False], ids=["double-buffered", "one-buffer"])
+def test_streamed_slabs_equal_the_whole_solve(rt, dtype, overlap):
     psf, y, kw = problem(dtype=dtype)
     whole = reconstruct(y, psf, dtype=dtype, device=rt, **kw)
-    assert whole.info["layout"] == [{"device": rt.caps.name, "planes": [0, 7], "streamed": False, "slab_planes": 7}]
-    streamed = reconstruct(y, psf, dtype=dtype, device=rt, stream=True, max_slab_planes=2, **kw)
+    assert whole.info["layout"] == [{"device": rt.caps.name, "planes": [0, 7], "streamed": False, "slab_planes": 7,
+                                     "overlap": False}]
+    streamed = reconstruct(y, psf, dtype=dtype, device=rt, stream=True, max_slab_planes=2, overlap=overlap, **kw)
     lay = streamed.info["layout"]
     assert lay[0]["streamed"] and lay[0]["slab_planes"] == 2 and streamed.info["slabs"] == 4
-    # the device holds two planes of each volume, not seven
-    assert streamed.info["device_bytes"] < 0.6 * whole.info["device_bytes"]
+    assert lay[0]["overlap"] is overlap
+    # the device holds two planes of each volume (two sets of two when double-buffered), not seven
+    assert streamed.info["device_bytes"] < (0.8 if overlap else 0.6) * whole.info["device_bytes"]
     # the traffic is what the memory model says (PSF spectra once at setup; halo planes on top)
     moved = streamed.info["moved_bytes"]
     model = 25 * streamed_bytes_per_iteration(7, (64, 80), dtype, "cl", 2) + memory_estimate(7, (64, 80), dtype, "cl")["psf_spectra"]
@@ -94,10 +97,19 @@ def test_planner_fits_the_memory_it_is_given(rt):
     whole = plan_layout(nz, P, np.float32, "cl", [rt], max_memory=est["total"] + 1)
     assert len(whole) == 1 and not whole[0].streamed
     cap = est["total"] // 4
+    vols = memory_estimate(1, P, np.float32, "cl")["volumes_per_plane"]
     streamed = plan_layout(nz, P, np.float32, "cl", [rt], max_memory=cap)
-    assert streamed[0].streamed and streamed[0].device_bytes <= cap
-    assert streamed[0].device_bytes + est["per_plane"] > cap       # the largest slab that fits
-    assert streamed[0].host_bytes == nz * est["per_plane"]
+    assert streamed[0].overlap is (rt.caps.kind != "CPU")       # 'auto': double-buffered on GPUs only
+    lp = plan_layout(nz, P, np.float32, "cl", [rt], max_memory=cap, overlap=True)[0]
+    assert lp.streamed and lp.overlap and lp.device_bytes <= cap
+    assert lp.device_bytes + est["per_plane"] + vols > cap       # the largest double-buffered slab that fits
+    assert lp.host_bytes == nz * vols                            # the volumes, once, in host memory
+    one = plan_layout(nz, P, np.float32, "cl", [rt], max_memory=cap, overlap=False)[0]
+    assert not one.overlap and one.slab_planes > lp.slab_planes and one.device_bytes + est["per_plane"] > cap
+    # a cap that holds one plane's buffers but not two: one buffer set, no overlap
+    tight = plan_layout(nz, P, np.float32, "cl", [rt], max_memory=est["fixed"] + est["per_plane"] + vols // 2,
+                        overlap=True)[0]
+    assert tight.streamed and not tight.overlap and tight.slab_planes == 1
     two = plan_layout(nz, P, np.float32, "cl", [rt, rt], max_memory=est["total"] // 2 + est["fixed"])
     assert [(p.z0, p.z1, p.streamed) for p in two] == [(0, 20, False), (20, 40, False)]
     with pytest.raises(DeviceError, match="too large even streamed"):
@@ -118,16 +130,18 @@ def test_cli_streams_under_a_memory_cap_and_plans_it(rt, tmp_path, capsys):
     tifffile.imwrite(tmp_path / "meas.tif", y)
     base = ["reconstruct", str(tmp_path / "meas.tif"), "--psf", str(tmp_path / "psf.tif"), "--max-iter", "15", "--quiet"]
     est = memory_estimate(7, (64, 80), np.float32, "cl")
-    cap = str(est["fixed"] + 3 * est["per_plane"])
+    dbl = rt.caps.kind != "CPU"      # double-buffered slabs on GPUs, one buffer set on CPUs
+    cap = str(est["fixed"] + 3 * (est["per_plane"] + dbl * est["volumes_per_plane"]))
     assert main(base + ["-o", str(tmp_path / "a.ome.tif"), "--max-memory", cap, "--dry-run"]) == 0
     text = capsys.readouterr().out
-    assert "planes 0..6, streamed in slabs of 3 planes" in text
+    suffix = " (double-buffered)" if dbl else ""
+    assert f"planes 0..6, streamed in slabs of 3 planes{suffix}" in text
     moved = streamed_bytes_per_iteration(7, (64, 80), np.float32, "cl", 2)
     assert f"moved between host and devices per iteration: {moved / 2**30:.2f} GiB" in text
     assert "s per iteration" in text and "host <-> device" in text
     assert main(base + ["-o", str(tmp_path / "a.ome.tif"), "--max-memory", cap]) == 0
     text = capsys.readouterr().out
-    assert "streamed in slabs of 3" in text and "GB moved between host and devices" in text and "peak host RSS" in text
+    assert f"streamed in slabs of 3{suffix}" in text and "GB moved between host and devices" in text and "peak host RSS" in text
     assert main(base + ["-o", str(tmp_path / "b.ome.tif")]) == 0
     a, b = io.read_tiff(tmp_path / "a.ome.tif")[0], io.read_tiff(tmp_path / "b.ome.tif")[0]
     np.testing.assert_array_equal(a, b)
@@ -139,3 +153,23 @@ def test_cli_streams_under_a_memory_cap_and_plans_it(rt, tmp_path, capsys):
     assert main(base + ["-o", str(tmp_path / "c.ome.tif"), "--host-memory", "1K"]) == 2
     assert "MiB allowed (--host-memory)" in capsys.readouterr().err
     assert not (tmp_path / "c.ome.tif").exists()
+
+
+def test_pinned_host_copies_stream_the_same(rt, monkeypatch):
+    """The pinned host copies a GPU streams from (buffers the driver allocates in host memory, mapped):
+    forced on this CPU device, the double-buffered solve is bit-identical to the plain-memory one."""
+    from cm2cl.solver.admm import ADMMSolver
+    from cm2cl.solver.params import ADMMParams
+    from cm2cl.solver.parts import Part
+
+    psf, y, kw = problem()
+    prm = ADMMParams(max_iter=kw["max_iter"], tol=0, tv_axial_weight=kw["tv_axial_weight"])
+    plain = ADMMSolver(psf, prm, device=rt, padded_shape=kw["padded_shape"], stream=True, max_slab_planes=2)
+    a = plain.solve(y)
+    assert not plain.parts[0]._pinned
+    real = Part.__init__
+    monkeypatch.setattr(Part, "__init__", lambda self, *ar, **k: real(self, *ar, **{**k, "pinned": True}))
+    pinned = ADMMSolver(psf, prm, device=rt, padded_shape=kw["padded_shape"], stream=True, max_slab_planes=2)
+    assert len(pinned.parts[0]._pinned) == 11 * 4    # every volume's four slabs
+    b = pinned.solve(y)
+    assert np.array_equal(a.volume, b.volume)

@@ -40,7 +40,7 @@ GB = 1e9
 
 
 def fake_device(gb):
-    return SimpleNamespace(caps=SimpleNamespace(global_mem=int(gb * GB), name=f"{gb:g} GB device", index=0))
+    return SimpleNamespace(caps=SimpleNamespace(global_mem=int(gb * GB), name=f"{gb:g} GB device", index=0, kind="GPU"))
 
 
 def plan_rows():
@@ -62,13 +62,14 @@ def plan_rows():
                 fits = ", ".join(f"{h}" for h in (24, 128, 256) if host <= 0.9 * h * GB) or "none"
                 moved = streamed_bytes_per_iteration(nz, P, np.float32, "cl", 2) if lp.streamed else 0
                 rows.append([f"{nz}", f"{P[0]} x {P[1]} ({pad_name})", f"{dev}",
-                             f"streamed, slabs of {lp.slab_planes}" if lp.streamed else "resident",
+                             (f"streamed, slabs of {lp.slab_planes}" + (", double-buffered" if lp.overlap else ""))
+                             if lp.streamed else "resident",
                              f"{lp.device_bytes / GB:.1f}", f"{host / GB:.1f}", fits, f"{moved / GB:.1f}",
                              f"{nz * P[0] * P[1] / (2 * sensor[0] - 1) / (2 * sensor[1] - 1) / nz:.2f}"])
     return rows
 
 
-def run_one(size, iters, max_memory, stream):
+def run_one(size, iters, max_memory, stream, overlap=True):
     """One solve in this process (called through a subprocess): JSON with s/iter and peak RSS."""
     import cm2cl
     from bench_admm import problem
@@ -76,36 +77,44 @@ def run_one(size, iters, max_memory, stream):
     my, mx, nz = parse_size(size)
     psf, y = problem(my, mx, nz, np.random.default_rng(0))
     t = time.perf_counter()
-    rec = cm2cl.reconstruct(y, psf, max_iter=iters, tol=0, max_memory=max_memory,
+    rec = cm2cl.reconstruct(y, psf, max_iter=iters, tol=0, max_memory=max_memory, overlap=overlap,
                             stream={"auto": "auto", "always": True, "never": False}[stream])
     wall = time.perf_counter() - t
     np.save(os.environ["BENCH_OUT"], rec.volume_padded[:: max(1, nz // 8)])
     sec = rec.log_array("seconds")
     lay = rec.info["layout"][0]
     print(json.dumps({"s_per_iter": float(np.median(np.diff(sec))), "wall": wall, "iters": rec.iterations,
-                      "streamed": lay["streamed"], "slab_planes": lay["slab_planes"],
+                      "streamed": lay["streamed"], "slab_planes": lay["slab_planes"], "overlap": lay["overlap"],
                       "device_gib": rec.info["device_bytes"] / 2**30, "host_gib": rec.info["host_bytes"] / 2**30,
                       "moved_gb_per_iter": rec.info["moved_bytes"] / rec.iterations / GB,
                       "rss_gib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20,
                       "padded": list(rec.info["padded_shape"])}))
 
 
-def measured(size, iters, max_memory, tmp):
+def measured(size, iters, max_memory, tmp, modes):
     out = {}
-    for mode, cap, stream in (("in memory", None, "never"), ("streamed", max_memory, "always")):
-        env = {**os.environ, "BENCH_OUT": str(tmp / f"{mode.replace(' ', '_')}.npy")}
-        cmd = [sys.executable, __file__, "--run-one", size, str(iters), str(cap or 0), stream]
+    for mode, cap, stream, overlap in [m for m in MODES if m[0] in modes]:
+        env = {**os.environ, "BENCH_OUT": str(tmp / f"{mode.replace(' ', '_').replace(',', '')}.npy")}
+        cmd = [sys.executable, __file__, "--run-one", size, str(iters), str(max_memory if cap else 0), stream,
+               str(int(overlap))]
         res = subprocess.run(cmd, env=env, capture_output=True, text=True)
         if res.returncode:
             out[mode] = {"error": (res.stderr.strip().splitlines() or ["?"])[-1]}
         else:
             out[mode] = json.loads(res.stdout.strip().splitlines()[-1])
         print(mode, out[mode], flush=True)
-    a, b = (tmp / "in_memory.npy"), (tmp / "streamed.npy")
-    if a.exists() and b.exists():
-        va, vb = np.load(a), np.load(b)
-        out["distance"] = float(np.linalg.norm(va - vb) / max(np.linalg.norm(va), 1e-30))
+    a = tmp / "in_memory.npy"
+    for mode, *_ in MODES[1:]:
+        b = tmp / f"{mode.replace(' ', '_').replace(',', '')}.npy"
+        if a.exists() and b.exists():
+            va, vb = np.load(a), np.load(b)
+            out.setdefault("distance", {})[mode] = float(np.linalg.norm(va - vb) / max(np.linalg.norm(va), 1e-30))
     return out
+
+
+#: (mode, under the --max-memory cap, stream, double-buffered)
+MODES = (("in memory", False, "never", True), ("streamed, one buffer", True, "always", False),
+         ("streamed, double-buffered", True, "always", True))
 
 
 def series_rate(frames):
@@ -160,6 +169,8 @@ def main(argv=None):
     ap.add_argument("--iters", type=int, default=6)
     ap.add_argument("--max-memory", default="2G")
     ap.add_argument("--frames", type=int, default=20)
+    ap.add_argument("--modes", default=";".join(m[0] for m in MODES),
+                    help="measured modes, ';'-separated (default all: " + "; ".join(m[0] for m in MODES) + ")")
     ap.add_argument("--skip", default="", help="comma list of parts to skip: plans,measured,series")
     a = ap.parse_args(argv)
     from cm2cl.cli.reconstruct import _size
@@ -180,23 +191,28 @@ def main(argv=None):
         import tempfile
 
         with tempfile.TemporaryDirectory() as tmp:
-            m = measured(a.size, a.iters, _size(a.max_memory), Path(tmp))
-        head = ["mode", "padded grid", "layout", "s / iteration", "x in memory", "device GiB", "host copies GiB",
-                "moved GB / iteration", "peak RSS GiB"]
+            m = measured(a.size, a.iters, _size(a.max_memory), Path(tmp), a.modes.split(";"))
+        head = ["mode", "padded grid", "layout", "s / iteration", "x in memory", "job s", "device GiB",
+                "host copies GiB", "moved GB / iteration", "peak RSS GiB"]
         rows = []
         base = m.get("in memory", {}).get("s_per_iter")
-        for mode in ("in memory", "streamed"):
+        for mode, *_ in MODES:
+            if mode not in m:
+                continue
             r = m[mode]
             if "error" in r:
-                rows.append([mode, "", r["error"][:80], "", "", "", "", "", ""])
+                rows.append([mode, "", r["error"][:80], "", "", "", "", "", "", ""])
                 continue
             rows.append([mode, " x ".join(map(str, r["padded"])),
-                         f"slabs of {r['slab_planes']}" if r["streamed"] else "resident", f"{r['s_per_iter']:.2f}",
-                         f"{r['s_per_iter'] / base:.2f}" if base else "", f"{r['device_gib']:.2f}",
+                         (f"slabs of {r['slab_planes']}" + (", double-buffered" if r["overlap"] else ""))
+                         if r["streamed"] else "resident", f"{r['s_per_iter']:.2f}",
+                         f"{r['s_per_iter'] / base:.2f}" if base else "", f"{r['wall']:.0f}", f"{r['device_gib']:.2f}",
                          f"{r['host_gib']:.2f}", f"{r['moved_gb_per_iter']:.1f}", f"{r['rss_gib']:.1f}"])
         text += [f"## Streamed against in memory ({a.size}, --max-memory {a.max_memory})", "",
-                 f"Median seconds between iterations over {a.iters} iterations, each mode in its own process; "
-                 f"relative distance of the two volumes: {m.get('distance', float('nan')):.1e}.", "",
+                 f"Median seconds between iterations over {a.iters} iterations and the whole job's seconds (setup, "
+                 "iterations, result), each mode in its own process, one after another; "
+                 "relative distance of the streamed volumes from the in-memory one: "
+                 + ", ".join(f"{k} {v:.1e}" for k, v in m.get("distance", {}).items()) + ".", "",
                  markdown_table(head, rows), ""]
     if "series" not in skip:
         head = ["devices", "frames", "seconds", "frames / minute"]
@@ -209,7 +225,7 @@ def main(argv=None):
 
 if __name__ == "__main__":
     if len(sys.argv) > 1 and sys.argv[1] == "--run-one":
-        size, iters, cap, stream = sys.argv[2:6]
-        run_one(size, int(iters), int(cap) or None, stream)
+        size, iters, cap, stream, overlap = sys.argv[2:7]
+        run_one(size, int(iters), int(cap) or None, stream, bool(int(overlap)))
     else:
         main()

@@ -405,8 +405,8 @@ def _plan(args) -> int:
           + f", {dt.name}, FFT {backend}")
     moved = 0
     for lp in layout:
-        how = (f"streamed in slabs of {lp.slab_planes} planes from {lp.host_bytes / 2**30:.2f} GiB of host memory"
-               if lp.streamed else "resident")
+        how = (f"streamed in slabs of {lp.slab_planes} planes{' (double-buffered)' if lp.overlap else ''} from "
+               f"{lp.host_bytes / 2**30:.2f} GiB of host memory" if lp.streamed else "resident")
         if lp.streamed:
             moved += streamed_bytes_per_iteration(lp.z1 - lp.z0, P, dt, backend, args.tv_iters)
         print(f"  device {lp.rt.caps.name} (#{lp.rt.caps.index}): planes {lp.z0}..{lp.z1 - 1}, {how}; "
@@ -507,7 +507,8 @@ def _report(out, outset, rec, how, vol):
         rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024   # Linux: KiB
         print("  planes: " + "; ".join(
             f"{p['planes'][0]}..{p['planes'][1] - 1} on {p['device']}"
-            + (f" streamed in slabs of {p['slab_planes']}" if p["streamed"] else " resident") for p in lay)
+            + (f" streamed in slabs of {p['slab_planes']}{' (double-buffered)' if p.get('overlap') else ''}"
+               if p["streamed"] else " resident") for p in lay)
             + f"; {info['moved_bytes'] / 1e9:.2f} GB moved between host and devices, "
               f"{info['device_bytes'] / 2**30:.2f} GiB on the devices, peak host RSS {rss / 2**30:.2f} GiB")
     px = info.get("pixels") or {}

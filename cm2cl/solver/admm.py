@@ -85,7 +85,8 @@ class ADMMSolver:
     layout computes the same iterates (:mod:`cm2cl.solver.parts`)."""
 
     def __init__(self, psf, params: ADMMParams, *, dtype=np.float32, backend="auto", device=None,
-                 padded_shape=None, max_slab_planes=None, devices=None, max_memory=None, stream="auto"):
+                 padded_shape=None, max_slab_planes=None, devices=None, max_memory=None, stream="auto",
+                 overlap="auto"):
         psf = validate.psf_stack(psf, "psf")
         # a first normalisation in float64 on the host, so that no input scale over- or underflows
         # in float32 on the device: sum_i (sum |h_i|)^2 bounds max_k sum_i |H_i(k)|^2 from above
@@ -117,7 +118,8 @@ class ADMMSolver:
         self.P, self.M, self.nz = P, tuple(sensor), psf.shape[0]
         scratch = fft_scratch_per_plane(rt, P, self.dtype, self.backend)
         self.layout = plan_layout(self.nz, P, self.dtype, self.backend, rts, max_memory=max_memory,
-                                  stream=stream, max_slab_planes=max_slab_planes, scratch_per_plane=scratch)
+                                  stream=stream, max_slab_planes=max_slab_planes, scratch_per_plane=scratch,
+                                  overlap=overlap)
         self.memory = memory_estimate(self.nz, P, self.dtype, self.backend, scratch)
         self.cdtype = complex_dtype(self.dtype)
         spec_plane = get_plan(rt, P, 1, self.dtype, self.backend).spec_shape[1:]
@@ -126,7 +128,8 @@ class ADMMSolver:
         oy, ox = self.offsets
         self.crop = (slice(oy, oy + self.M[0]), slice(ox, ox + self.M[1]))
         self.parts = [Part(lp.rt, lp.z0, lp.z1, P, spec_plane, self.dtype, self.cdtype,
-                           slab_planes=lp.slab_planes, streamed=lp.streamed) for lp in self.layout]
+                           slab_planes=lp.slab_planes, streamed=lp.streamed, overlap=lp.overlap)
+                      for lp in self.layout]
         names = [("fft_conv.cl", "spectral_power"), ("xstep.cl", "rhs_volume"), ("xstep.cl", "rhs_plane"),
                  ("xstep.cl", "xstep_accumulate"), ("xstep.cl", "xstep_hx"), ("xstep.cl", "xstep_solve"),
                  ("splits.cl", "update_w"), ("splits.cl", "update_v"), ("tv.cl", "tv_residual"),
@@ -424,7 +427,7 @@ class ADMMSolver:
         for plane in vol:   # scaled in float64, rounded to the solve's dtype; in place, a plane at a time
             plane[...] = plane.astype(np.float64) * (self.psf_scale / y_scale)
         layout = [{"device": part.rt.caps.name, "planes": [part.z0, part.z1], "streamed": part.streamed,
-                   "slab_planes": part.max_planes} for part in self.parts]
+                   "slab_planes": part.max_planes, "overlap": part.overlap} for part in self.parts]
         return Reconstruction(
             volume_padded=vol, crop=self.crop, log=ctl.log,
             scaling={"psf_scale": float(self.psf_scale), "y_scale": float(y_scale)},
@@ -457,7 +460,7 @@ def reconstruct(measurement, psf, *,
                 mu_range: float = _D.mu_range, normalize: bool = _D.normalize,
                 dtype=np.float32, backend: str = "auto", device=None, padded_shape=None,
                 max_slab_planes: int | None = None, devices=None, max_memory=None, stream="auto",
-                voxel_size_um=None, depths_um=None,
+                overlap="auto", voxel_size_um=None, depths_um=None,
                 weights=None, padding: str = "full", callback=None, callback_every: int = 1,
                 x0=None) -> Reconstruction:
     """Reconstruct a 3D volume from one CM2 measurement (paper Eq. 4) on an OpenCL device.
@@ -533,6 +536,10 @@ def reconstruct(measurement, psf, *,
     stream : 'auto' (default), True or False
         Stream depth slabs through each device from host memory: when they do not fit ('auto'), always
         (True), or never (False: a problem too large is refused).
+    overlap : 'auto' (default), True or False
+        Double-buffer streamed slabs where two buffer sets fit, so that copies overlap work: on GPUs and
+        accelerators ('auto'), always (True), or never (False: one set, larger slabs, copies and work in
+        turn; 'auto' on CPUs, where it measured faster).
     voxel_size_um : (dz, dy, dx) in um, optional
         Object-space voxel size, carried to ``rec.voxel_size_um``.
     depths_um : (nz,) in um, optional
@@ -606,7 +613,7 @@ def reconstruct(measurement, psf, *,
         psf, padded_shape, pad_info = support_padding(psf, fft_backend(backend, device))
     solver = ADMMSolver(psf, prm, dtype=dtype, backend=backend, device=device,
                         padded_shape=padded_shape, max_slab_planes=max_slab_planes, devices=devices,
-                        max_memory=max_memory, stream=stream)
+                        max_memory=max_memory, stream=stream, overlap=overlap)
     rec = solver.solve(y, callback=callback, callback_every=callback_every, weights=weights, x0=x0)
     rec.voxel_size_um, rec.depths_um = vs, d
     rec.info["padding"] = pad_info or {"padded_shape": list(solver.P), "support_px": None}

@@ -50,7 +50,8 @@ def memory_estimate(nz, padded_shape, dtype, backend, scratch_per_plane=0) -> di
     # planes: v, xi, hx, cty, cw, r and two halos (real); R, S, comp (complex); hn2 (real, spectrum grid)
     fixed = 8 * real_plane + 3 * spec_plane + spec_plane // 2 + 1024 + int(scratch_per_plane)
     return {"per_plane": per_plane, "fixed": fixed, "total": nz * per_plane + fixed,
-            "real_volume": nz * real_plane, "psf_spectra": nz * spec_plane}
+            "real_volume": nz * real_plane, "psf_spectra": nz * spec_plane,
+            "volumes_per_plane": REAL_VOLUMES * real_plane + 2 * spec_plane}
 
 
 def device_budget(rt, max_memory=None) -> int:
@@ -99,14 +100,16 @@ KERNEL_FLOOR_RATIO = 1.9
 def expected_seconds(layout, padded_shape, dtype, backend, tv_iters, copy_rates, transfer_rates) -> float:
     """Expected seconds per iteration of a layout from rates measured on its devices (by runtime):
     each part's kernels at KERNEL_FLOOR_RATIO x its bandwidth floor, plus its streamed bytes at the
-    transfer rate; parts on different devices run side by side, parts on one device one after another."""
+    transfer rate (the larger of the two where double-buffered slabs overlap them); parts on different
+    devices run side by side, parts on one device one after another."""
     per_device: dict = {}
     for lp in layout:
         t = KERNEL_FLOOR_RATIO * iteration_bytes(lp.z1 - lp.z0, padded_shape, dtype, backend, tv_iters) \
             / copy_rates[id(lp.rt)]
         if lp.streamed:
-            t += streamed_bytes_per_iteration(lp.z1 - lp.z0, padded_shape, dtype, backend, tv_iters) \
+            c = streamed_bytes_per_iteration(lp.z1 - lp.z0, padded_shape, dtype, backend, tv_iters) \
                 / transfer_rates[id(lp.rt)]
+            t = max(t, c) if lp.overlap else t + c
         per_device[id(lp.rt)] = per_device.get(id(lp.rt), 0.0) + t
     return max(per_device.values())
 
@@ -121,18 +124,25 @@ class PartPlan:
     slab_planes: int | None
     device_bytes: int
     host_bytes: int
+    overlap: bool = False   #: streamed with two sets of slab buffers: the next slab's copies overlap this one's work
 
 
 def plan_layout(nz, padded_shape, dtype, backend, runtimes, *, max_memory=None, stream="auto",
-                max_slab_planes=None, scratch_per_plane=0) -> list[PartPlan]:
+                max_slab_planes=None, scratch_per_plane=0, overlap="auto") -> list[PartPlan]:
     """Spread ``nz`` planes over ``runtimes`` (contiguous runs, in proportion to each device's budget):
     resident where every run fits its device, else (``stream`` 'auto' or True) streamed slabs sized to
-    the budget; ``stream=True`` streams even when resident would fit. Refuses with the smallest plan's
-    needs when not even one streamed plane per device fits."""
+    the budget; ``stream=True`` streams even when resident would fit. Streamed slabs are double-buffered
+    (``overlap``: two sets of slab buffers, so that copies overlap work) where the part has two slabs or
+    more and two buffers of at least one plane fit; ``overlap='auto'`` double-buffers on devices with
+    their own memory (GPUs, accelerators) and not on CPUs, where a copy is the same cores' work and the
+    halved slabs cost more than the overlap saves (docs/schedule.md). Refuses with the smallest plan's needs when not even
+    one streamed plane per device fits."""
     if stream not in ("auto", True, False):
         raise ValueError(f"stream: expected 'auto', True or False, got {stream!r}")
+    if overlap not in ("auto", True, False):
+        raise ValueError(f"overlap: expected 'auto', True or False, got {overlap!r}")
     est = memory_estimate(1, padded_shape, dtype, backend, scratch_per_plane)
-    per, fixed = est["per_plane"], est["fixed"]
+    per, fixed, vols = est["per_plane"], est["fixed"], est["volumes_per_plane"]
     budgets = [device_budget(rt, max_memory) for rt in runtimes]
     keep = [(rt, r, bud) for rt, r, bud in zip(runtimes, _proportional_runs(nz, budgets), budgets) if r[1] > r[0]]
     runtimes, runs, budgets = [k[0] for k in keep], [k[1] for k in keep], [k[2] for k in keep]
@@ -154,7 +164,13 @@ def plan_layout(nz, padded_shape, dtype, backend, runtimes, *, max_memory=None, 
                 f"padded grid needs {(fixed + per) / 2**20:.2f} MiB on device '{rt.caps.name}', "
                 f"{bud / 2**20:.2f} MiB available (bin the measurement, use support padding or lateral tiles)")
         slab = int(min(slab, b - a, max_slab_planes or slab))
-        out.append(PartPlan(rt, a, b, True, slab, fixed + slab * per, (b - a) * per))
+        double = (bud - fixed) // (per + vols)   # planes per slab with a second set of slab buffers
+        dbl = overlap is True or (overlap == "auto" and rt.caps.kind != "CPU")
+        if dbl and double >= 1 and b - a > min(slab, double):
+            slab = int(min(double, b - a, max_slab_planes or double))
+            out.append(PartPlan(rt, a, b, True, slab, fixed + slab * (per + vols), (b - a) * vols, True))
+        else:
+            out.append(PartPlan(rt, a, b, True, slab, fixed + slab * per, (b - a) * vols))
     return out
 
 

@@ -9,12 +9,19 @@ float64 and the border planes are copied into one-plane halo buffers (DESIGN.md 
 
 Each step of an iteration visits every slab with the volumes it reads and writes (:meth:`Part.slabs`);
 a streamed part copies the slab's read set to the device before the step and its write set back after
-it, so the device holds one slab of each volume plus the plane buffers (:func:`part_bytes`).
+it, so the device holds one slab of each volume plus the plane buffers.
+
+Double buffering (``overlap``): a streamed part with two sets of slab buffers copies on a second queue of
+its device. While slab j computes in one set, slab j+1's reads go to the other set, and slab j's writes
+come back once its work is done; events order each copy after the last work on its set and each slab's
+work after its copies. On devices with their own memory the host copies are pinned (mapped buffers
+allocated by the driver), which is what lets a GPU copy while it computes.
 """
 
 from __future__ import annotations
 
 import numpy as np
+import pyopencl as cl
 
 from ..device.volume import Volume, slab_bounds
 from ..device.fft import get_plan
@@ -40,7 +47,7 @@ class Part:
     device buffers for each step."""
 
     def __init__(self, rt, z0, z1, padded_shape, spec_plane, dtype, cdtype, *, slab_planes=None,
-                 streamed=False):
+                 streamed=False, overlap=False, pinned=None):
         self.rt, self.z0, self.z1 = rt, int(z0), int(z1)
         self.P, self.spec_plane = tuple(padded_shape), tuple(spec_plane)
         self.dtype, self.cdtype = np.dtype(dtype), np.dtype(cdtype)
@@ -49,9 +56,16 @@ class Part:
         self.bounds = slab_bounds(self.z1 - self.z0, plane_bytes, rt.caps.max_alloc, slab_planes)
         self.max_planes = max(b - a for a, b in self.bounds)
         shapes = {n: (self.P, self.dtype) for n in REAL} | {n: (self.spec_plane, self.cdtype) for n in COMPLEX}
+        self.overlap = self.streamed and bool(overlap) and len(self.bounds) > 1
+        self.copy_queue = cl.CommandQueue(rt.context) if self.overlap else None
+        self.busy = [None, None]   # per slab-buffer set: the event of the last work that used it
+        self._pinned = []
         if self.streamed:
-            self.host = {n: [np.zeros((b - a,) + s, d) for a, b in self.bounds] for n, (s, d) in shapes.items()}
-            self.slot = {n: rt.zeros((self.max_planes,) + s, d) for n, (s, d) in shapes.items()}
+            pin = rt.caps.kind != "CPU" if pinned is None else bool(pinned)
+            self.host = {n: [self._host_array((b - a,) + s, d, pin) for a, b in self.bounds]
+                         for n, (s, d) in shapes.items()}
+            self.slots = [{n: rt.zeros((self.max_planes,) + s, d) for n, (s, d) in shapes.items()}
+                          for _ in range(2 if self.overlap else 1)]
             self.vol = None
         else:
             self.vol = {n: Volume(rt, self.bounds, s, d) for n, (s, d) in shapes.items()}
@@ -62,11 +76,28 @@ class Part:
         self.planes["hn2"] = plane(self.spec_plane, self.dtype)
         self.moved_bytes = 0   # host <-> device traffic of the streamed slabs
 
+    def _host_array(self, shape, dtype, pinned: bool) -> np.ndarray:
+        """A zeroed host array; ``pinned``: mapped from a buffer the driver allocates in host memory
+        (page-locked on GPUs), or a plain one where the driver refuses."""
+        if pinned:
+            nbytes = int(np.prod(shape)) * np.dtype(dtype).itemsize
+            try:
+                buf = cl.Buffer(self.rt.context, cl.mem_flags.READ_WRITE | cl.mem_flags.ALLOC_HOST_PTR, nbytes)
+                arr, _ = cl.enqueue_map_buffer(self.rt.queue, buf, cl.map_flags.READ | cl.map_flags.WRITE, 0,
+                                               shape, dtype, is_blocking=True)
+            except cl.Error:
+                pass
+            else:
+                arr.fill(0)
+                self._pinned.append(buf)
+                return arr
+        return np.zeros(shape, dtype)
+
     # ---- allocation figures -------------------------------------------------------------------
     @property
     def device_bytes(self) -> int:
         if self.streamed:
-            vols = sum(a.nbytes for a in self.slot.values())
+            vols = sum(a.nbytes for slot in self.slots for a in slot.values())
         else:
             vols = sum(v.nbytes for v in self.vol.values())
         return vols + sum(a.nbytes for a in self.planes.values())
@@ -84,7 +115,8 @@ class Part:
         whatever they hold)."""
         a, b = self.bounds[j]
         if self.streamed:
-            return {n: self.slot[n][: b - a] for n in names}
+            slot = self.slots[j % len(self.slots)]
+            return {n: slot[n][: b - a] for n in names}
         return {n: self.vol[n].slabs[j] for n in names}
 
     def slabs(self, reads=(), writes=(), scratch=(), edges=(), reverse=False):
@@ -93,6 +125,9 @@ class Part:
         before and ``writes`` out after, and of ``edges`` only the first plane (a neighbour's halo)."""
         names = tuple(dict.fromkeys(tuple(reads) + tuple(writes) + tuple(scratch) + tuple(edges)))
         order = range(len(self.bounds) - 1, -1, -1) if reverse else range(len(self.bounds))
+        if self.overlap:
+            yield from self._overlapped(list(order), names, reads, writes, edges)
+            return
         for j in order:
             a, b = self.bounds[j]
             arr = self.arrays(j, names)
@@ -109,6 +144,50 @@ class Part:
                     arr[n][0:1].get(ary=self.host[n][j][0:1])
                     self.moved_bytes += self.host[n][j][0].nbytes
 
+    def _overlapped(self, order, names, reads, writes, edges):
+        """:meth:`slabs` with two buffer sets: copies on the copy queue, work on the device's queue."""
+        cq, q = self.copy_queue, self.rt.queue
+
+        def upload(j):
+            arr = self.arrays(j, names)
+            wait = [e for e in (self.busy[j % 2],) if e is not None]
+            for n in reads:
+                cl.enqueue_copy(cq, arr[n].base_data, self.host[n][j], dst_offset=arr[n].offset,
+                                is_blocking=False, wait_for=wait)
+                self.moved_bytes += self.host[n][j].nbytes
+            # complete once these copies and every earlier one (the write-backs of the slab that used
+            # this set before) are: the slab's work waits for it even when it reads nothing
+            return cl.enqueue_marker(cq, wait_for=wait)
+
+        try:
+            pending = upload(order[0])
+            for k, j in enumerate(order):
+                if k + 1 < len(order):   # the next slab's reads, while this one computes
+                    nxt = upload(order[k + 1])
+                cl.enqueue_barrier(q, wait_for=[pending])
+                a, b = self.bounds[j]
+                arr = self.arrays(j, names)
+                yield j, b - a, arr
+                done = cl.enqueue_marker(q)
+                self.busy[j % 2] = done
+                for n in writes:
+                    cl.enqueue_copy(cq, self.host[n][j], arr[n].base_data, src_offset=arr[n].offset,
+                                    is_blocking=False, wait_for=[done])
+                    self.moved_bytes += self.host[n][j].nbytes
+                for n in edges:
+                    cl.enqueue_copy(cq, self.host[n][j][0:1], arr[n].base_data, src_offset=arr[n].offset,
+                                    is_blocking=False, wait_for=[done])
+                    self.moved_bytes += self.host[n][j][0].nbytes
+                if k + 1 < len(order):
+                    pending = nxt
+        finally:
+            cq.finish()
+
+    def sync(self):
+        """Wait for the copy queue (host copies are current afterwards)."""
+        if self.copy_queue is not None:
+            self.copy_queue.finish()
+
     def neighbour(self, name: str, j: int, which: str):
         """The device array holding the plane next to slab ``j`` inside this part (``which`` = 'next':
         the first plane of slab j+1, 'prev': the last plane of slab j-1), with its plane count; a
@@ -117,6 +196,7 @@ class Part:
         if not self.streamed:
             s = self.vol[name].slabs[k]
             return s, s.shape[0]
+        self.sync()
         src = self.host[name][k]
         return self.load_halo(which, src[0] if which == "next" else src[-1]), 1
 
@@ -153,7 +233,8 @@ class Part:
         store = self.host if self.streamed else self.vol
         store[a], store[b] = store[b], store[a]
         if self.streamed:
-            self.slot[a], self.slot[b] = self.slot[b], self.slot[a]
+            for slot in self.slots:
+                slot[a], slot[b] = slot[b], slot[a]
 
     def scale(self, name: str, factor):
         """Multiply a volume by a real scalar in place (the PSF spectra's normalisation)."""
