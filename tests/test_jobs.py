@@ -183,11 +183,19 @@ def test_dask_local_cluster_gives_the_local_result(rt, tmp_path):
     _series(tmp_path, n=3)
     ref = tmp_path / "ref.ome.zarr"
     assert _job(tmp_path, ref).returncode == 0
+    b = np.asarray(zarr.open_group(str(ref), mode="r")["0"])
     with distributed.LocalCluster(n_workers=1, threads_per_worker=1, host="127.0.0.1", processes=True,
                                   dashboard_address=None) as cluster:
         r = _job(tmp_path, tmp_path / "dask.ome.zarr", "--scheduler", cluster.scheduler_address)
-    assert r.returncode == 0, r.stderr
-    assert "3 computed" in r.stdout and cluster.scheduler_address in r.stdout
-    a = np.asarray(zarr.open_group(str(tmp_path / "dask.ome.zarr"), mode="r")["0"])
-    b = np.asarray(zarr.open_group(str(ref), mode="r")["0"])
-    np.testing.assert_array_equal(a, b)
+        assert r.returncode == 0, r.stderr
+        assert "3 computed" in r.stdout and cluster.scheduler_address in r.stdout
+        a = np.asarray(zarr.open_group(str(tmp_path / "dask.ome.zarr"), mode="r")["0"])
+        np.testing.assert_array_equal(a, b)
+        # the client killed (SIGKILL) between frame 1's chunk and its mark; the same command resumes
+        out = tmp_path / "killed.ome.zarr"
+        r = _job(tmp_path, out, "--scheduler", cluster.scheduler_address, env={"CM2CL_FAULT": "after_chunk.1"})
+        assert r.returncode == -9, (r.returncode, r.stderr)
+        r = _job(tmp_path, out, "--scheduler", cluster.scheduler_address)
+        assert r.returncode == 0, r.stderr
+        assert "already done" in r.stdout and "3 computed" not in r.stdout
+    np.testing.assert_array_equal(np.asarray(zarr.open_group(str(out), mode="r")["0"]), b)
