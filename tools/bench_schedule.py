@@ -219,7 +219,11 @@ def main(argv=None):
         text += ["## A series at the demo size (324 x 432, 16 planes)", "",
                  "Frames solved by one worker per device after a warm-up frame each (kernel builds excluded).", "",
                  markdown_table(head, series_rate(a.frames)), ""]
-    (DOCS / "schedule.md").write_text("# Scheduler benchmarks\n\n" + "\n".join(text))
+    doc = DOCS / "schedule.md"
+    notes = ""   # a hand-written "## Notes" section (what the figures mean) survives a re-run
+    if doc.exists() and "\n## Notes" in doc.read_text():
+        notes = doc.read_text()[doc.read_text().index("\n## Notes") + 1:]
+    doc.write_text("# Scheduler benchmarks\n\n" + "\n".join(text) + ("\n" + notes if notes else ""))
     print("\n".join(text))
 
 

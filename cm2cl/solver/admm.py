@@ -539,7 +539,7 @@ def reconstruct(measurement, psf, *,
     overlap : 'auto' (default), True or False
         Double-buffer streamed slabs where two buffer sets fit, so that copies overlap work: on GPUs and
         accelerators ('auto'), always (True), or never (False: one set, larger slabs, copies and work in
-        turn; 'auto' on CPUs, where it measured faster).
+        turn; 'auto' on CPUs, where double buffering measured no faster).
     voxel_size_um : (dz, dy, dx) in um, optional
         Object-space voxel size, carried to ``rec.voxel_size_um``.
     depths_um : (nz,) in um, optional

@@ -134,8 +134,8 @@ def plan_layout(nz, padded_shape, dtype, backend, runtimes, *, max_memory=None, 
     the budget; ``stream=True`` streams even when resident would fit. Streamed slabs are double-buffered
     (``overlap``: two sets of slab buffers, so that copies overlap work) where the part has two slabs or
     more and two buffers of at least one plane fit; ``overlap='auto'`` double-buffers on devices with
-    their own memory (GPUs, accelerators) and not on CPUs, where a copy is the same cores' work and the
-    halved slabs cost more than the overlap saves (docs/schedule.md). Refuses with the smallest plan's needs when not even
+    their own memory (GPUs, accelerators) and not on CPUs, where a copy is the same cores' work and
+    double buffering measured no faster (docs/schedule.md). Refuses with the smallest plan's needs when not even
     one streamed plane per device fits."""
     if stream not in ("auto", True, False):
         raise ValueError(f"stream: expected 'auto', True or False, got {stream!r}")
