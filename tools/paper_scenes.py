@@ -137,7 +137,11 @@ def main(argv=None):
                 lines.append(f"| {r['scene']} | {r['variant']} | {it} | {rc:.2f} | {pr:.2f} | "
                              + " / ".join(f"{a:.2f}" for a, _, _ in th) + " |")
     lines += [""] + [f"![{r['scene']}](img/paper_{r['scene']}_mip.png)" for r in rows if r["variant"] == "defaults"] + [""]
-    Path(args.doc).write_text("\n".join(lines))
+    doc = Path(args.doc)
+    text = doc.read_text() if doc.exists() else ""
+    if "\n## " in text:   # hand-written notes after the tables (what the figures mean) survive a re-run
+        lines += [text[text.index("\n## ") + 1:]]
+    doc.write_text("\n".join(lines))
     print("\n".join(lines))
 
 
