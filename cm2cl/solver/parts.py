@@ -21,9 +21,8 @@ allocated by the driver), which is what lets a GPU copy while it computes.
 from __future__ import annotations
 
 import numpy as np
-import pyopencl as cl
-
 from ..device.volume import Volume, slab_bounds
+from ..device.transfer import CopyQueue, work_done, wait_before_work, pinned_array
 from ..device.fft import get_plan
 
 #: the solver's real volumes on the padded grid and its complex ones (x spectra, PSF spectra)
@@ -57,7 +56,7 @@ class Part:
         self.max_planes = max(b - a for a, b in self.bounds)
         shapes = {n: (self.P, self.dtype) for n in REAL} | {n: (self.spec_plane, self.cdtype) for n in COMPLEX}
         self.overlap = self.streamed and bool(overlap) and len(self.bounds) > 1
-        self.copy_queue = cl.CommandQueue(rt.context) if self.overlap else None
+        self.copy_queue = CopyQueue(rt) if self.overlap else None
         self.busy = [None, None]   # per slab-buffer set: the event of the last work that used it
         self._pinned = []
         if self.streamed:
@@ -80,15 +79,8 @@ class Part:
         """A zeroed host array; ``pinned``: mapped from a buffer the driver allocates in host memory
         (page-locked on GPUs), or a plain one where the driver refuses."""
         if pinned:
-            nbytes = int(np.prod(shape)) * np.dtype(dtype).itemsize
-            try:
-                buf = cl.Buffer(self.rt.context, cl.mem_flags.READ_WRITE | cl.mem_flags.ALLOC_HOST_PTR, nbytes)
-                arr, _ = cl.enqueue_map_buffer(self.rt.queue, buf, cl.map_flags.READ | cl.map_flags.WRITE, 0,
-                                               shape, dtype, is_blocking=True)
-            except cl.Error:
-                pass
-            else:
-                arr.fill(0)
+            arr, buf = pinned_array(self.rt, shape, dtype)
+            if arr is not None:
                 self._pinned.append(buf)
                 return arr
         return np.zeros(shape, dtype)
@@ -146,37 +138,34 @@ class Part:
 
     def _overlapped(self, order, names, reads, writes, edges):
         """:meth:`slabs` with two buffer sets: copies on the copy queue, work on the device's queue."""
-        cq, q = self.copy_queue, self.rt.queue
+        cq = self.copy_queue
 
         def upload(j):
             arr = self.arrays(j, names)
             wait = [e for e in (self.busy[j % 2],) if e is not None]
             for n in reads:
-                cl.enqueue_copy(cq, arr[n].base_data, self.host[n][j], dst_offset=arr[n].offset,
-                                is_blocking=False, wait_for=wait)
+                cq.upload(arr[n], self.host[n][j], wait)
                 self.moved_bytes += self.host[n][j].nbytes
             # complete once these copies and every earlier one (the write-backs of the slab that used
             # this set before) are: the slab's work waits for it even when it reads nothing
-            return cl.enqueue_marker(cq, wait_for=wait)
+            return cq.marker(wait)
 
         try:
             pending = upload(order[0])
             for k, j in enumerate(order):
                 if k + 1 < len(order):   # the next slab's reads, while this one computes
                     nxt = upload(order[k + 1])
-                cl.enqueue_barrier(q, wait_for=[pending])
+                wait_before_work(self.rt, [pending])
                 a, b = self.bounds[j]
                 arr = self.arrays(j, names)
                 yield j, b - a, arr
-                done = cl.enqueue_marker(q)
+                done = work_done(self.rt)
                 self.busy[j % 2] = done
                 for n in writes:
-                    cl.enqueue_copy(cq, self.host[n][j], arr[n].base_data, src_offset=arr[n].offset,
-                                    is_blocking=False, wait_for=[done])
+                    cq.download(self.host[n][j], arr[n], [done])
                     self.moved_bytes += self.host[n][j].nbytes
                 for n in edges:
-                    cl.enqueue_copy(cq, self.host[n][j][0:1], arr[n].base_data, src_offset=arr[n].offset,
-                                    is_blocking=False, wait_for=[done])
+                    cq.download(self.host[n][j][0:1], arr[n][0:1], [done])
                     self.moved_bytes += self.host[n][j][0].nbytes
                 if k + 1 < len(order):
                     pending = nxt
