@@ -150,13 +150,14 @@ inline real_t div_at(__global const real_t *px, __global const real_t *py, __glo
     return d + aw * dz;
 }
 
-/* The w split's state (the lean state, cm2cl/solver/admm.py): s = mu x + rho - c, mu times the
- * argument of the l1 prox at the last w update minus its threshold, with c = l1 l1w[z] and mu the
- * weight and penalty of that update.  Then
- *     w = max(s, 0) / mu,   rho = min(s, 0) + c
- * exactly (rho' = rho + mu (x - w') = s + c - max(s, 0)). */
-inline real_t split_w(const real_t s, const real_t mu) { return fmax(s, (real_t)0) / mu; }
-inline real_t split_rho(const real_t s, const real_t c) { return fmin(s, (real_t)0) + c; }
+/* The w split's state (the lean state, cm2cl/solver/admm.py): s = x + rho/mu, the argument of the l1
+ * prox at the last w update, with c = l1 l1w[z] and mu the threshold's weight and the penalty of that
+ * update.  Then exactly
+ *     w = max(s - c/mu, 0),   rho = min(mu s, c)      (rho' = rho + mu (x - w') = mu s - mu w').
+ * Rounding: w = 0 and rho are as accurate as the explicit ones; where w > 0 it carries an absolute
+ * error of a few ulps of c/mu (the explicit update's is of x). */
+inline real_t split_w(const real_t s, const real_t c, const real_t mu) { return fmax(s - c / mu, (real_t)0); }
+inline real_t split_rho(const real_t s, const real_t c, const real_t mu) { return fmin(mu * s, c); }
 
 /* Loop over the elements a work-item reduces (see reduction_range), with their coordinates
  * (x, y, z) kept up to date without divisions.  Use: FOR_EACH_REDUCED(i, n, ...) { body } */

@@ -14,9 +14,9 @@ inline real_t tv_at(__global const real_t *x, __global const real_t *x_next, con
 
 /* After the x step, for one slab of `planes` planes, the w split and its dual from the split's state s
  * (split_w, split_rho in common.cl; l1_s, mu_s: the weight and penalty s was made with):
- *     w = max(s, 0)/mu_s,  rho = min(s, 0) + l1_s l1w[z]                        (the previous ones)
- *     s' = mu_w x + rho - l1 l1w[z]
- *     w' = max(s', 0)/mu_w = max(x + (rho - l1 l1w[z])/mu_w, 0),  rho' = rho + mu_w (x - w')
+ *     w = max(s - l1_s l1w[z]/mu_s, 0),  rho = min(mu_s s, l1_s l1w[z])          (the previous ones)
+ *     s' = x + rho/mu_w
+ *     w' = max(s' - l1 l1w[z]/mu_w, 0),  rho' = rho + mu_w (x - w') = min(mu_w s', l1 l1w[z])
  * (l1w: the weight of each plane of the slab in the l1 term).
  * Reduces into slots slot0 + (0..7): ||x - x_old||^2, ||x||^2, sum l1w|x|, TV(x), ||x - w'||^2, ||w' - w||^2,
  * ||w'||^2, ||rho'||^2 (the last two scale the relative residuals of the stopping rule).
@@ -34,9 +34,10 @@ __kernel void update_w(__global const real_t *x, __global const real_t *x_next, 
         const real_t xi = x[i], si = s[i];
         const real_t lw = l1w[z];   /* the plane's weight of the l1 term */
         const real_t c = l1 * lw;
-        const real_t sn = mu_w * xi + split_rho(si, l1_s * lw) - c;
-        const real_t wn = split_w(sn, mu_w), rn = split_rho(sn, c);
-        const real_t dx = xi - x_old[i], pw = xi - wn, dw = wn - split_w(si, mu_s);
+        const real_t cs = l1_s * lw;
+        const real_t sn = xi + split_rho(si, cs, mu_s) / mu_w;
+        const real_t wn = split_w(sn, c, mu_w), rn = split_rho(sn, c, mu_w);
+        const real_t dx = xi - x_old[i], pw = xi - wn, dw = wn - split_w(si, cs, mu_s);
         s[i] = sn;
         a0 += dx * dx;
         a1 += xi * xi;
@@ -59,7 +60,8 @@ __kernel void split_state(__global real_t *out, __global const real_t *s, const 
     const int xx = get_global_id(0), y = get_global_id(1), z = get_global_id(2);
     if (xx >= nx || y >= ny || z >= planes) return;
     const size_t i = ((size_t)z * ny + y) * nx + xx;
-    out[i] = rho ? split_rho(s[i], l1_s * l1w[z]) : split_w(s[i], mu_s);
+    const real_t c = l1_s * l1w[z];
+    out[i] = rho ? split_rho(s[i], c, mu_s) : split_w(s[i], c, mu_s);
 }
 
 /* The v split on the padded plane (py, px), sensor window (my, mx) at (oy, ox):

@@ -53,7 +53,7 @@ def test_x_step_solves_its_normal_equations(rt, dtype, backend, slabs):
     s.x_step(mu_v, mu_u, mu_w)
     x = s.get_volume("g").astype(np.float64)
     lw = s.l1_plane_weights[:, None, None]
-    w, rho = np.maximum(st["s"], 0) / 0.9, np.minimum(st["s"], 0) + 0.3 * lw
+    w, rho = np.maximum(st["s"] - 0.3 * lw / 0.9, 0), np.minimum(0.9 * st["s"], 0.3 * lw)
     eta = 0.2 * ref.tv_div(st["px"], st["py"], st["pz"], 0.6)
     rhs = ref.correlate_spatial(psf, mu_v * v - xi) + (mu_u * st["u"] - eta) + (mu_w * w - rho)
     Hx = ref.convolve_spatial(psf, x)

@@ -47,7 +47,7 @@ def test_derived_state_equals_the_twins_explicit_one(rt, dtype, warm):
 def test_penalty_change_keeps_w_and_rho(rt):
     """The exact form: one w update at a new penalty mu_w from a state s made at another (mu_s, l1_s)
     gives the twin's w' = max(x + (rho - l1 c)/mu_w, 0) and rho' = rho + mu_w (x - w') from the
-    explicit w, rho that state stands for; a plain (unscaled) s could not serve both penalties."""
+    explicit w, rho that state stands for (read at the new penalty, s would stand for other ones)."""
     rng = np.random.default_rng(4)
     psf, _, y = bead_problem(2)
     nz = psf.shape[0]
@@ -59,8 +59,8 @@ def test_penalty_change_keeps_w_and_rho(rt):
     s.l1_split = (0.02, 1.7)                      # made with another weight and penalty
     w, rho = s.get_volume("w"), s.get_volume("rho")
     c = s.l1_plane_weights[:, None, None]
-    np.testing.assert_allclose(w, np.maximum(state, 0) / 1.7, rtol=1e-15)
-    np.testing.assert_allclose(rho, np.minimum(state, 0) + 0.02 * c, rtol=1e-15)
+    np.testing.assert_allclose(w, np.maximum(state - 0.02 * c / 1.7, 0), rtol=1e-15)
+    np.testing.assert_allclose(rho, np.minimum(1.7 * state, 0.02 * c), rtol=1e-15)
     # the solver's w step on this state at another weight and penalty
     x = rng.random((nz,) + P)
     s.set_volume("x", x)

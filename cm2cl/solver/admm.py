@@ -11,10 +11,12 @@ The lean state: per voxel the iteration keeps 7 real volumes (x, the previous x 
 the TV dual p = (px, py, pz)) and 2 complex ones (the x spectra, the PSF spectra). w, rho and eta are
 not stored; every step that needs them derives them exactly (kernels: split_w, split_rho, div_at):
 
-* w split: s = mu_w x + rho - c (c = l1 l1w[z]), the l1 prox's argument times mu_w minus its
-  threshold, so that w = max(s, 0) / mu_w and rho = rho_old + mu_w (x - w) = min(s, 0) + c. The weight
-  and penalty s was made with are :attr:`ADMMSolver.l1_split`; they stay with s when the penalty
-  policy changes mu_w, so rho (the unscaled dual) and w are the same before and after the change.
+* w split: s = x + rho_old / mu_w, the l1 prox's argument, so that w = max(s - c / mu_w, 0)
+  (c = l1 l1w[z]) and rho = rho_old + mu_w (x - w) = min(mu_w s, c). The weight and penalty s was made
+  with are :attr:`ADMMSolver.l1_split`; they stay with s when the penalty policy changes mu_w, so rho
+  (the unscaled dual) and w are the same before and after the change. (Of the exact one-scalar forms
+  this one keeps w = 0 and rho as accurate as explicit storage; mu_w x + rho - c would cost rho its
+  accuracy wherever |rho| << c, i.e. in the background.)
 * u split: eta = eta_old + mu_u (x - u) with u = z - tau div p, z = x + eta_old / mu_u and
   tau = tv / mu_u gives eta = tv div p (p as the last dual iterations left it; :attr:`ADMMSolver.tv_split`
   is the tv). z is stored in the x spectra's buffer while the TV prox runs (the spectra are not needed
@@ -198,8 +200,8 @@ class ADMMSolver:
                                          for n in {b - a for a, b in part.bounds})
                                    for part in self.parts)
         self.host_bytes = sum(part.host_bytes for part in self.parts)
-        #: (l1, mu): the l1 weight and penalty the w split's state s was made with (w = max(s, 0)/mu,
-        #: rho = min(s, 0) + l1 l1w[z]); (0, 1) for a state set directly: s = w >= 0, rho = 0
+        #: (l1, mu): the l1 weight and penalty the w split's state s was made with (w = max(s - c/mu, 0),
+        #: rho = min(mu s, c), c = l1 l1w[z]); (0, 1) for a state set directly: s = w >= 0, rho = 0
         self.l1_split = (0.0, 1.0)
         #: the TV weight the dual p belongs to: eta = tv_split div p
         self.tv_split = 0.0
