@@ -130,6 +130,35 @@ inline void grad_at(__global const real_t *v, __global const real_t *v_next, con
     else if (has_next) *gz = aw * (v_next[i - (size_t)z * plane] - c);
 }
 
+/* div p = -grad^T p at element i (plane z of `planes`) of a slab, p = (px, py, pz) the TV dual: backward
+ * differences, p taken as 0 past the last index; pz_prev is the previous slab of pz (its last plane is
+ * the z-1 neighbour) when has_prev, and has_next says whether a plane follows the slab's last one. */
+inline real_t div_at(__global const real_t *px, __global const real_t *py, __global const real_t *pz,
+                     __global const real_t *pz_prev, const int has_prev, const int has_next,
+                     const size_t i, const int z, const int y, const int x,
+                     const int planes, const int prev_planes, const int ny, const int nx,
+                     const real_t aw) {
+    const size_t plane = (size_t)ny * nx;
+    /* unconditional loads at clamped indices, then selects: keeps the x direction vectorisable */
+    const real_t pxl = px[i - (size_t)(x > 0)], pyl = py[i - (size_t)(y > 0) * nx];
+    real_t d = (x < nx - 1 ? px[i] : (real_t)0) - (x > 0 ? pxl : (real_t)0);
+    d += (y < ny - 1 ? py[i] : (real_t)0) - (y > 0 ? pyl : (real_t)0);
+    const int last = (z == planes - 1) && !has_next;
+    real_t dz = last ? (real_t)0 : pz[i];
+    if (z > 0) dz -= pz[i - plane];
+    else if (has_prev) dz -= pz_prev[(size_t)(prev_planes - 1) * plane + (i - (size_t)z * plane)];
+    return d + aw * dz;
+}
+
+/* The w split's state (the lean state, cm2cl/solver/admm.py): s = x + rho/mu, the argument of the l1
+ * prox at the last w update, with c = l1 l1w[z] and mu the threshold's weight and the penalty of that
+ * update.  Then exactly
+ *     w = max(s - c/mu, 0),   rho = min(mu s, c)      (rho' = rho + mu (x - w') = mu s - mu w').
+ * Rounding: w = 0 and rho are as accurate as the explicit ones; where w > 0 it carries an absolute
+ * error of a few ulps of c/mu (the explicit update's is of x). */
+inline real_t split_w(const real_t s, const real_t c, const real_t mu) { return fmax(s - c / mu, (real_t)0); }
+inline real_t split_rho(const real_t s, const real_t c, const real_t mu) { return fmin(mu * s, c); }
+
 /* Loop over the elements a work-item reduces (see reduction_range), with their coordinates
  * (x, y, z) kept up to date without divisions.  Use: FOR_EACH_REDUCED(i, n, ...) { body } */
 #define FOR_EACH_REDUCED(i, n, K, contiguous, ny, nx, x, y, z)                                  \

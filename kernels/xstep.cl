@@ -4,12 +4,22 @@
  *     X_i = (B_i - mu_v conj(H_i) HX) / c,   HX = (sum_i H_i B_i) / (c + mu_v sum_i |H_i|^2)
  * and HX is also the spectrum of H x.  Spectra: `planes` planes of `nfreq` complex values. */
 
-/* Right-hand side in the object domain:  t = mu_u u - eta + mu_w w - rho  (n reals). */
-__kernel void rhs_volume(__global real_t *t, __global const real_t *u, __global const real_t *eta,
-                         __global const real_t *w, __global const real_t *rho,
-                         const real_t mu_u, const real_t mu_w, const ulong n) {
-    const size_t i = get_global_id(0);
-    if (i < n) t[i] = mu_u * u[i] - eta[i] + mu_w * w[i] - rho[i];
+/* Right-hand side in the object domain over one slab:  t = mu_u u - eta + mu_w w - rho,  with the duals
+ * and w derived from the state the iteration keeps: eta = tv div p (tv.cl), w = max(s - c/mu_s, 0) and
+ * rho = min(mu_s s, c) with c = l1_s l1w[z] (splits.cl); pz_prev: the previous slab of pz when has_prev. */
+__kernel void rhs_volume(__global real_t *t, __global const real_t *u, __global const real_t *s,
+                         __global const real_t *px, __global const real_t *py, __global const real_t *pz,
+                         __global const real_t *pz_prev, const int has_prev, const int prev_planes,
+                         const int has_next, const real_t mu_u, const real_t mu_w, const real_t tv,
+                         const real_t l1_s, __global const real_t *l1w, const real_t mu_s, const real_t aw,
+                         const int planes, const int ny, const int nx) {
+    const int xx = get_global_id(0), y = get_global_id(1), z = get_global_id(2);
+    if (xx >= nx || y >= ny || z >= planes) return;
+    const size_t i = ((size_t)z * ny + y) * nx + xx;
+    const real_t eta = tv > 0 ? tv * div_at(px, py, pz, pz_prev, has_prev, has_next, i, z, y, xx,
+                                             planes, prev_planes, ny, nx, aw) : (real_t)0;
+    const real_t si = s[i], c = l1_s * l1w[z];
+    t[i] = mu_u * u[i] - eta + mu_w * split_w(si, c, mu_s) - split_rho(si, c, mu_s);
 }
 
 /* Right-hand side of the v split (one padded plane):  r = mu_v v - xi. */

@@ -39,18 +39,23 @@ def test_x_step_solves_its_normal_equations(rt, dtype, backend, slabs):
     nz, M, P = 3, (10, 12), (20, 24)
     psf = rng.random((nz,) + M) ** 3
     psf *= ref.normalisation(psf, np.ones(M), P)[0]
-    s = ADMMSolver(psf.astype(dtype), ADMMParams(normalize=False), dtype=dtype, backend=backend,
-                   padded_shape=P, max_slab_planes=slabs)
-    st = {k: rng.standard_normal((nz,) + P) for k in ("u", "eta", "w", "rho")}
+    s = ADMMSolver(psf.astype(dtype), ADMMParams(normalize=False, tv_axial_weight=0.6, l1_plane_power=2.0), dtype=dtype,
+                   backend=backend, padded_shape=P, max_slab_planes=slabs)
+    # the lean state: s (w and rho derive from it), u, the TV dual p (eta derives from it)
+    st = {k: rng.standard_normal((nz,) + P) for k in ("u", "s", "px", "py", "pz")}
     v, xi = rng.standard_normal(P), rng.standard_normal(P)
     for k, a in st.items():
         s.set_volume(k, a)
     s.set_plane("v", v)
     s.set_plane("xi", xi)
+    s.l1_split, s.tv_split = (0.3, 0.9), 0.2   # s made with l1 = 0.3 at mu_w = 0.9; eta = 0.2 div p
     mu_v, mu_u, mu_w = 0.7, 1.3, 0.4
     s.x_step(mu_v, mu_u, mu_w)
     x = s.get_volume("g").astype(np.float64)
-    rhs = ref.correlate_spatial(psf, mu_v * v - xi) + (mu_u * st["u"] - st["eta"]) + (mu_w * st["w"] - st["rho"])
+    lw = s.l1_plane_weights[:, None, None]
+    w, rho = np.maximum(st["s"] - 0.3 * lw / 0.9, 0), np.minimum(0.9 * st["s"], 0.3 * lw)
+    eta = 0.2 * ref.tv_div(st["px"], st["py"], st["pz"], 0.6)
+    rhs = ref.correlate_spatial(psf, mu_v * v - xi) + (mu_u * st["u"] - eta) + (mu_w * w - rho)
     Hx = ref.convolve_spatial(psf, x)
     lhs = mu_v * ref.correlate_spatial(psf, Hx) + (mu_u + mu_w) * x
     tol = 2e-6 if dtype == np.float32 else 1e-13

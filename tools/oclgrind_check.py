@@ -81,6 +81,8 @@ def workload():
                 for part in s.parts:
                     part.contiguous = np.int32(contiguous)
                 s.solve(meas.astype(dtype))
+                for name in ("w", "rho", "eta"):   # the state the iteration derives (split_state, tv_eta)
+                    s.get_volume(name)
         cm2cl.reconstruct(meas, psf, dtype=dtype, backend="cl", max_iter=2, tv=0.0, padded_shape=(16, 20))
         # streamed slabs (halo buffers, one-plane edge copies) with plane-weighted l1
         cm2cl.reconstruct(meas, psf, dtype=dtype, backend="cl", max_iter=2, l1=1e-3, tv=1e-3, padded_shape=(16, 20),

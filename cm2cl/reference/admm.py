@@ -17,11 +17,14 @@ def normalisation(psf, y, padded_shape):
 
 
 def admm(y, psf, params=None, padded_shape=None, dtype=np.float64, workers=None, callback=None,
-         weights=None, **kw):
+         weights=None, x0=None, state=None, **kw):
     """Float64 (or ``dtype``) numpy ADMM for paper Eq. 4 with the splits of DESIGN.md section 3.
 
     Same algorithm, order of updates, residuals, balancing and stopping as the device solver.
-    ``workers`` is passed to scipy.fft (-1 = all cores). Returns a Reconstruction.
+    ``workers`` is passed to scipy.fft (-1 = all cores). ``x0``: a warm start on the padded grid in the
+    volume's units (x, u and w start there, the duals at zero). ``state``: a dict that receives the
+    final iterates of the normalised problem (x, u, w, v and the duals rho, eta, xi, the TV dual p as
+    px, py, pz). Returns a Reconstruction.
     """
     import scipy.fft as sfft
 
@@ -50,7 +53,10 @@ def admm(y, psf, params=None, padded_shape=None, dtype=np.float64, workers=None,
     cty = embed(ys, P).astype(dt)
 
     x = np.zeros((nz,) + P, dt)
-    u, w, eta, rho = (np.zeros_like(x) for _ in range(4))
+    if x0 is not None:
+        x = (np.maximum(np.asarray(x0, np.float64), 0) * (s_y / s_h)).astype(dt)
+    u, w = x.copy(), x.copy()
+    eta, rho = (np.zeros_like(x) for _ in range(2))
     pd = np.zeros((3,) + x.shape, dt)
     v = np.zeros(P, dt)
     xi = np.zeros(P, dt)
@@ -95,6 +101,8 @@ def admm(y, psf, params=None, padded_shape=None, dtype=np.float64, workers=None,
         v, u, w = v_new, u_new, w_new
         if done:
             break
+    if state is not None:
+        state.update(x=x, u=u, w=w, v=v, rho=rho, eta=eta, xi=xi, px=pd[0], py=pd[1], pz=pd[2])
     oy, ox = crop_offsets(M, P)
     vol = np.maximum(x, 0) * (s_h / s_y)
     return Reconstruction(volume_padded=vol, crop=(slice(oy, oy + M[0]), slice(ox, ox + M[1])),

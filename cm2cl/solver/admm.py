@@ -6,6 +6,22 @@ Splits (DESIGN.md section 3): v = Hx (crop-aware data step), w = x (l1 + non-neg
 u = x (TV prox by warm-started dual iterations), and the exact x step by Sherman-Morrison per
 lateral frequency. Every step is a kernel in ``kernels/``; inside the loop the only transfer
 between host and device is one small buffer of reduced scalars per iteration.
+
+The lean state: per voxel the iteration keeps 7 real volumes (x, the previous x or scratch g, s, u and
+the TV dual p = (px, py, pz)) and 2 complex ones (the x spectra, the PSF spectra). w, rho and eta are
+not stored; every step that needs them derives them exactly (kernels: split_w, split_rho, div_at):
+
+* w split: s = x + rho_old / mu_w, the l1 prox's argument, so that w = max(s - c / mu_w, 0)
+  (c = l1 l1w[z]) and rho = rho_old + mu_w (x - w) = min(mu_w s, c). The weight and penalty s was made
+  with are :attr:`ADMMSolver.l1_split`; they stay with s when the penalty policy changes mu_w, so rho
+  (the unscaled dual) and w are the same before and after the change. (Of the exact one-scalar forms
+  this one keeps w = 0 and rho as accurate as explicit storage; mu_w x + rho - c would cost rho its
+  accuracy wherever |rho| << c, i.e. in the background.)
+* u split: eta = eta_old + mu_u (x - u) with u = z - tau div p, z = x + eta_old / mu_u and
+  tau = tv / mu_u gives eta = tv div p (p as the last dual iterations left it; :attr:`ADMMSolver.tv_split`
+  is the tv). z is stored in the x spectra's buffer while the TV prox runs (the spectra are not needed
+  between the x step's inverse FFT and the next x step).
+
 The float64 numpy twin is :func:`cm2cl.reference.admm` (tests and tools only).
 """
 
@@ -36,6 +52,8 @@ from .memory import fft_scratch_per_plane, memory_estimate, plan_layout
 NSLOTS = 18
 #: sums each fused kernel reduces (its __local scratch holds this many values per work-item)
 SUMS = {"update_w": RV2 - DX2, "update_v": RU2 - RV2, "tv_finish": NSLOTS - RU2}
+#: volumes of the state the iteration derives instead of storing (module docstring)
+DERIVED = ("w", "rho", "eta")
 
 log = logging.getLogger(__name__)
 #: elements each work-item of a reduction handles (PoCL on 2 cores: 64 beat 16 and 256 by
@@ -132,8 +150,9 @@ class ADMMSolver:
                       for lp in self.layout]
         names = [("fft_conv.cl", "spectral_power"), ("xstep.cl", "rhs_volume"), ("xstep.cl", "rhs_plane"),
                  ("xstep.cl", "xstep_accumulate"), ("xstep.cl", "xstep_hx"), ("xstep.cl", "xstep_solve"),
-                 ("splits.cl", "update_w"), ("splits.cl", "update_v"), ("tv.cl", "tv_residual"),
-                 ("tv.cl", "tv_dual_step"), ("tv.cl", "tv_finish"), ("reduce.cl", "reduce_partials")]
+                 ("splits.cl", "update_w"), ("splits.cl", "update_v"), ("splits.cl", "split_state"),
+                 ("tv.cl", "tv_residual"), ("tv.cl", "tv_dual_step"), ("tv.cl", "tv_finish"), ("tv.cl", "tv_eta"),
+                 ("reduce.cl", "reduce_partials")]
         for part in self.parts:
             part.k = {n: kernels.kernel(part.rt, f, n, self.dtype) for f, n in names}
             # reductions: each work-item walks contiguous elements on CPUs, interleaved on GPUs
@@ -181,6 +200,11 @@ class ADMMSolver:
                                          for n in {b - a for a, b in part.bounds})
                                    for part in self.parts)
         self.host_bytes = sum(part.host_bytes for part in self.parts)
+        #: (l1, mu): the l1 weight and penalty the w split's state s was made with (w = max(s - c/mu, 0),
+        #: rho = min(mu s, c), c = l1 l1w[z]); (0, 1) for a state set directly: s = w >= 0, rho = 0
+        self.l1_split = (0.0, 1.0)
+        #: the TV weight the dual p belongs to: eta = tv_split div p
+        self.tv_split = 0.0
 
     # ---- launch helpers --------------------------------------------------------------------
     def _ew(self, part, name, n, *args):
@@ -226,11 +250,14 @@ class ADMMSolver:
 
     def x_step(self, mu_v, mu_u, mu_w):
         """Solve (mu_v H^T H + (mu_u + mu_w) I) x = H^T (mu_v v - xi) + (mu_u u - eta) + (mu_w w - rho)
-        exactly: the solution goes to ``g`` and H x (padded plane) to part 0's ``hx``."""
+        exactly, with eta, w and rho derived from the state (p, s; module docstring): the solution goes to
+        ``g`` and H x (padded plane) to part 0's ``hx``."""
         R, I = self.dtype.type, np.int32  # noqa: E741
         ny, nx = self.P
         nf = np.uint64(self.nfreq)
         c = mu_u + mu_w
+        l1_s, mu_s = self.l1_split
+        aw = R(self.p.tv_axial_weight)
         p0 = self.parts[0].planes
         self._ew(self.parts[0], "rhs_plane", ny * nx, p0["r"].data, p0["v"].data, p0["xi"].data, R(mu_v),
                  np.uint64(ny * nx))
@@ -239,10 +266,13 @@ class ADMMSolver:
             Rh = p0["R"].get()
             for part in self.parts[1:]:
                 part.planes["R"].set(Rh)
-        for i, part, j, n, a in self._each_slab(("u", "eta", "w", "rho", "hs"), ("spec",), ("g",)):
+        for i, part, j, n, a in self._each_slab(("u", "s", "px", "py", "pz", "hs"), ("spec",), ("g",)):
             pl = part.planes
-            self._ew(part, "rhs_volume", a["g"].size, a["g"].data, a["u"].data, a["eta"].data, a["w"].data,
-                     a["rho"].data, R(mu_u), R(mu_w), np.uint64(a["g"].size))
+            prev, pn, hp = self._prev(i, j, "pz")
+            self._grid(part, "rhs_volume", n, a["g"].data, a["u"].data, a["s"].data, a["px"].data, a["py"].data,
+                       a["pz"].data, (prev if hp else a["pz"]).data, I(hp), I(pn), I(self._has_next(i, j)),
+                       R(mu_u), R(mu_w), R(self.tv_split), R(l1_s), part.l1w[j].data, R(mu_s), aw,
+                       I(n), I(ny), I(nx))
             part.plan(n, self.backend).forward(a["g"], a["spec"])
             self._ew(part, "xstep_accumulate", self.nfreq, a["spec"].data, a["hs"].data, pl["R"].data,
                      pl["S"].data, pl["comp"].data, I(n), nf, I(j == 0))
@@ -260,6 +290,21 @@ class ADMMSolver:
             part.plan(n, self.backend).inverse(a["spec"], a["g"])
         self.parts[0].plan2d.inverse(p0["S"], p0["hx"])
 
+    def w_step(self, l1, mu_w):
+        """The w split after an x step (x: the new iterate, g: the previous one): the state s from x and
+        the w, rho the previous s stands for (its :attr:`l1_split`), now made with (l1, mu_w); the
+        objective terms and residuals go to the reduction slots DX2..RHO2."""
+        R, I = self.dtype.type, np.int32  # noqa: E741
+        ny, nx = self.P
+        l1_s, mu_s = self.l1_split
+        aw, iso = R(self.p.tv_axial_weight), I(1 if self.p.tv_isotropic else 0)
+        for i, part, j, n, a in self._each_slab(("x", "g", "s"), ("s",)):
+            xn, has_next = self._next(i, j, "x")
+            self._red(part, "update_w", a["x"].size, DX2, a["x"].data, (xn if has_next else a["x"]).data,
+                      I(has_next), a["g"].data, a["s"].data, R(l1), part.l1w[j].data, R(mu_w), R(l1_s), R(mu_s),
+                      aw, iso, I(n), I(ny), I(nx))
+        self.l1_split = (float(l1), float(mu_w))
+
     def _fill(self, names, value=0):
         for part in self.parts:
             for n in names:
@@ -273,10 +318,32 @@ class ADMMSolver:
 
     # ---- state access (tests and tools) ----------------------------------------------------------
     def get_volume(self, name: str) -> np.ndarray:
-        """A (nz, Py, Px) volume of the state ('x', 'g', 'u', 'w', 'eta', 'rho', 'px', 'py', 'pz')."""
-        return self._gather(name)
+        """A (nz, Py, Px) volume of the state: one kept ('x', 'g', 's', 'u', 'px', 'py', 'pz') or one the
+        iteration derives ('w', 'rho' from s, 'eta' from p; computed on the device as the kernels that use
+        them do)."""
+        if name not in DERIVED:
+            return self._gather(name)
+        R, I = self.dtype.type, np.int32  # noqa: E741
+        ny, nx = self.P
+        l1_s, mu_s = self.l1_split
+        out = []
+        for i, part, j, n, a in self._each_slab(("s", "px", "py", "pz")):
+            t = part.rt.zeros(a["s"].shape, self.dtype)
+            if name == "eta":
+                prev, pn, hp = self._prev(i, j, "pz")
+                self._grid(part, "tv_eta", n, t.data, a["px"].data, a["py"].data, a["pz"].data,
+                           (prev if hp else a["pz"]).data, I(hp), I(pn), I(self._has_next(i, j)),
+                           R(self.tv_split), R(self.p.tv_axial_weight), I(n), I(ny), I(nx))
+            else:
+                self._grid(part, "split_state", n, t.data, a["s"].data, I(name == "rho"), R(l1_s),
+                           part.l1w[j].data, R(mu_s), I(n), I(ny), I(nx))
+            out.append(t.get())
+        return np.concatenate(out, axis=0)
 
     def set_volume(self, name: str, value: np.ndarray) -> None:
+        """Set a kept volume (the derived ones follow from s, p, :attr:`l1_split` and :attr:`tv_split`)."""
+        if name in DERIVED:
+            raise InputError(f"set_volume: {name!r} is derived from the state (s, p), not stored")
         value = np.asarray(value)
         for part in self.parts:
             for j, n, a in part.slabs(writes=(name,)):
@@ -346,16 +413,18 @@ class ADMMSolver:
         p, R, I = self.p, self.dtype.type, np.int32  # noqa: E741
         ny, nx = self.P
         p0, pl0 = self.parts[0], self.parts[0].planes
-        self._fill(("x", "u", "w", "eta", "rho", "v", "xi", "px", "py", "pz"))
+        self._fill(("x", "u", "s", "v", "xi", "px", "py", "pz"))
+        self.l1_split = (0.0, 1.0)   # s = w >= 0, rho = 0
         if x0 is not None:
             start = self._start_volume(x0, y_scale / self.psf_scale)
-            for name in ("x", "u", "w"):
+            for name in ("x", "u", "s"):
                 self.set_volume(name, start)
         cty = np.zeros(self.P, self.dtype)
         cty[self.crop] = y_n.astype(self.dtype)
         pl0["cty"].set(cty[None])
         ctl = Control(p, ProblemScale.of(np.where(wts > 0, y_n, 0.0), self.spectral_mean, self.nz), callback,
                       callback_every)
+        self.tv_split = ctl.tv   # p = 0: eta = 0
         aw, iso = R(p.tv_axial_weight), I(1 if p.tv_isotropic else 0)
         step = R(p.tv_step)
         # The data split starts at its minimiser for x = 0 (v = C^T y / (C^T C + mu_v)), not at 0, so that
@@ -374,11 +443,7 @@ class ADMMSolver:
                 part.swap("x", "g")   # x: new iterate, g: previous one (then scratch)
                 fill(part.rt, part.partials)
             # ---- w split (+ objective terms of x)
-            for i, part, j, n, a in self._each_slab(("x", "g", "w", "rho"), ("w", "rho")):
-                xn, has_next = self._next(i, j, "x")
-                self._red(part, "update_w", a["x"].size, DX2, a["x"].data, (xn if has_next else a["x"]).data,
-                          I(has_next), a["g"].data, a["w"].data, a["rho"].data, R(ctl.l1), part.l1w[j].data,
-                          R(mu_w), aw, iso, I(n), I(ny), I(nx))
+            self.w_step(ctl.l1, mu_w)
             # ---- v split (the plane lives on part 0)
             self._red(p0, "update_v", ny * nx, RV2, pl0["v"].data, pl0["xi"].data, pl0["hx"].data,
                       pl0["cty"].data, pl0["cw"].data, R(mu_v), I(ny), I(nx))
@@ -388,21 +453,25 @@ class ADMMSolver:
                 # One visit per slab and TV iteration, the last slab first: its residual needs the previous
                 # slab's dual variable before this iteration's step (not yet taken), its dual step the next
                 # slab's residual (already computed): the same values as all residuals, then all steps.
-                for _ in range(p.tv_iters):
-                    for i, part, j, n, a in self._each_slab(("px", "py", "pz", "x", "eta"), ("px", "py", "pz"),
-                                                            edges=("g",), reverse=True):
+                # The first TV iteration stores z = x + eta/mu_u in spec (free until the next x step).
+                for k in range(p.tv_iters):
+                    first = k == 0
+                    reads = ("px", "py", "pz") + (("x",) if first else ("spec",))
+                    writes = ("px", "py", "pz") + (("spec",) if first else ())
+                    for i, part, j, n, a in self._each_slab(reads, writes, edges=("g",), reverse=True):
                         prev, pn, hp = self._prev(i, j, "pz")
                         self._grid(part, "tv_residual", n, a["g"].data, *grid(a), (prev if hp else a["pz"]).data,
-                                   I(hp), I(pn), I(self._has_next(i, j)), a["x"].data, a["eta"].data,
-                                   R(1.0 / mu_u), R(1.0 / tau), aw, I(n), I(ny), I(nx))
+                                   I(hp), I(pn), I(self._has_next(i, j)), a["x" if first else "spec"].data,
+                                   a["spec"].data, I(first), R(tau), R(1.0 / tau), aw, I(n), I(ny), I(nx))
                         gn, hn = self._next(i, j, "g")
                         self._grid(part, "tv_dual_step", n, *grid(a), a["g"].data, (gn if hn else a["g"]).data,
                                    I(hn), step, aw, iso, I(n), I(ny), I(nx))
-            for i, part, j, n, a in self._each_slab(("u", "eta", "x", "px", "py", "pz"), ("u", "eta")):
+            for i, part, j, n, a in self._each_slab(("u", "x", "px", "py", "pz") + (("spec",) if tau > 0 else ()),
+                                                    ("u",)):
                 prev, pn, hp = self._prev(i, j, "pz")
-                self._red(part, "tv_finish", a["u"].size, RU2, a["u"].data, a["eta"].data, a["x"].data, *grid(a),
-                          (prev if hp else a["pz"]).data, I(hp), I(pn), I(self._has_next(i, j)), R(mu_u), R(tau),
-                          aw, I(n), I(ny), I(nx))
+                self._red(part, "tv_finish", a["u"].size, RU2, a["u"].data, a["x"].data,
+                          a["spec" if tau > 0 else "x"].data, *grid(a), (prev if hp else a["pz"]).data, I(hp), I(pn),
+                          I(self._has_next(i, j)), R(ctl.tv), R(tau), aw, I(n), I(ny), I(nx))
             # ---- the scalars of this iteration: one small read per part, added in float64
             s = np.zeros(NSLOTS)
             for part in self.parts:

@@ -25,8 +25,9 @@ def host_available_bytes() -> int:
     return int(psutil.virtual_memory().available)
 
 
-#: real volumes on the padded grid the solver keeps (x, x_old/scratch, u, w, eta, rho, px, py, pz)
-REAL_VOLUMES = 9
+#: real volumes on the padded grid the solver keeps (x, x_old/scratch, s, u, px, py, pz: parts.REAL;
+#: w, rho and eta are derived, cm2cl.solver.admm)
+REAL_VOLUMES = 7
 
 
 def fft_scratch_per_plane(rt, padded_shape, dtype, backend) -> int:
@@ -76,20 +77,22 @@ def check_fits(rt, nz, padded_shape, dtype, backend, max_memory=None):
 
 def streamed_bytes_per_iteration(planes, padded_shape, dtype, backend, tv_iters) -> int:
     """Host <-> device bytes one iteration moves for ``planes`` streamed planes (halo planes aside):
-    each step copies in what it reads and out what it writes (cm2cl.solver.admm): x step 4V + S in, S
-    out, then 2S in, V out; w split 4V in, 2V out; per TV iteration 5V in, 3V out; TV finish 6V in,
-    2V out (V: a real volume of the planes, S: their spectra)."""
+    each step copies in what it reads and out what it writes (cm2cl.solver.admm): x step 5V + S in, S
+    out, then 2S in, V out; w split 3V in, V out; the first TV iteration 4V in, 3V + S out, each
+    further one 3V + S in, 3V out; TV finish 5V + S in, V out (V: a real volume of the planes, S: their
+    spectra; S also carries the TV prox's argument)."""
     est = memory_estimate(planes, padded_shape, dtype, backend)
     V, S = est["real_volume"], est["psf_spectra"]
-    return int((4 + 1 + 4 + 2 + 6 + 2 + 8 * tv_iters) * V + 4 * S)
+    return int((5 + 1 + 3 + 1 + 5 + 1 + 6 * tv_iters + 1) * V + (4 + tv_iters + 1) * S)
 
 
 def iteration_bytes(nz, padded_shape, dtype, backend, tv_iters) -> int:
     """Device memory traffic of one iteration's kernels, each FFT counted as one read and one write:
-    rhs 5V; FFT V+S; x-step accumulate 3S and solve 3S; IFFT S+V; w split 6V; TV: residual 6V and dual
-    step 7V per inner iteration; TV finish 8V (V: a real volume, S: a spectrum volume)."""
+    rhs 6V; FFT V+S; x-step accumulate 3S and solve 3S; IFFT S+V; w split 4V; TV: residual 5V (6V the
+    first time) and dual step 7V per inner iteration; TV finish 7V (V: a real volume, S: a spectrum
+    volume)."""
     est = memory_estimate(nz, padded_shape, dtype, backend)
-    return int((5 + 1 + 1 + 6 + 8 + 13 * tv_iters) * est["real_volume"] + 8 * est["psf_spectra"])
+    return int((6 + 1 + 1 + 4 + 1 + 7 + 12 * tv_iters) * est["real_volume"] + 8 * est["psf_spectra"])
 
 
 #: seconds per iteration over the bandwidth floor (iteration_bytes / copy rate) of cm2cl's kernels,

@@ -25,8 +25,11 @@ from ..device.volume import Volume, slab_bounds
 from ..device.transfer import CopyQueue, work_done, wait_before_work, pinned_array
 from ..device.fft import get_plan
 
-#: the solver's real volumes on the padded grid and its complex ones (x spectra, PSF spectra)
-REAL = ("x", "g", "u", "w", "eta", "rho", "px", "py", "pz")
+#: the solver's real volumes on the padded grid and its complex ones (x spectra, PSF spectra): x, the
+#: previous x or scratch g, the w split's state s (w and its dual rho derive from it), u, and the TV dual
+#: p = (px, py, pz) (the u split's dual eta = tv div p derives from it); ``spec`` also holds the TV prox's
+#: argument z as reals while the x spectra are not needed (the lean state: cm2cl/solver/admm.py)
+REAL = ("x", "g", "s", "u", "px", "py", "pz")
 COMPLEX = ("spec", "hs")
 
 __all__ = ["Part", "split_planes", "REAL", "COMPLEX"]
@@ -52,6 +55,8 @@ class Part:
         self.dtype, self.cdtype = np.dtype(dtype), np.dtype(cdtype)
         self.streamed = bool(streamed)
         plane_bytes = int(np.prod(self.spec_plane)) * self.cdtype.itemsize
+        if 2 * int(np.prod(self.spec_plane)) < int(np.prod(self.P)):   # spec holds a real volume (z) too
+            raise ValueError(f"spectrum plane {self.spec_plane} holds fewer reals than a padded plane {self.P}")
         self.bounds = slab_bounds(self.z1 - self.z0, plane_bytes, rt.caps.max_alloc, slab_planes)
         self.max_planes = max(b - a for a, b in self.bounds)
         shapes = {n: (self.P, self.dtype) for n in REAL} | {n: (self.spec_plane, self.cdtype) for n in COMPLEX}
