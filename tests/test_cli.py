@@ -224,3 +224,10 @@ def test_prior_points_turns_tv_off(rt, tmp_path):
     assert info["tv"] == 0 and np.allclose(info["l1_plane_weights"], 1.0)
     assert main(base + ["-o", str(tmp_path / "q.ome.tif"), "--tv", "0.01"]) == 0
     assert json.loads((tmp_path / "q.cm2cl.json").read_text())["info"]["tv"] == 0.01
+    # points-weighted: TV off too, and plane i's l1 weight ~ ||h_i||^2 (mean 1), read back from the record
+    assert main(base[:-1] + ["points-weighted", "-o", str(tmp_path / "w.ome.tif")]) == 0
+    info = json.loads((tmp_path / "w.cm2cl.json").read_text())["info"]
+    h = io.read_tiff(psf)[0].astype(np.float64) - 100
+    power = (h ** 2).sum(axis=(1, 2))
+    assert info["tv"] == 0
+    np.testing.assert_allclose(info["l1_plane_weights"], power / power.mean(), rtol=1e-5)

@@ -8,8 +8,8 @@ the MIPs in docs/img/paper_<scene>_mip.png.
 
 ``--trace`` scores the iterate at those iterations too (what more iterations buy); ``--variants`` adds
 runs with other weights: ``tv0`` = TV off (l1 only), ``dtype64`` = the default in float64, ``points`` =
-TV off with each plane's l1 weight ~ ||h_i||^2 (``tv_noise_ratio=0, l1_plane_power=2``; ``--prior points``
-is TV off alone, the ``tv0`` row).
+TV off with each plane's l1 weight ~ ||h_i||^2 (``--prior points-weighted``; ``--prior points`` is TV off
+alone, the ``tv0`` row).
 
 Slow on a CPU (about 20 min per scene on 2 cores): a benchmark, not a test.
 """
@@ -89,7 +89,7 @@ def main(argv=None):
     marks = {int(v) for v in args.trace.split(",") if v.strip()}
     variants = {"default": ("defaults", {}), "tv0": ("TV off (tv 0, l1 default; = --prior points)", {"tv": 0.0}),
                 "dtype64": ("defaults, float64", {"dtype": np.float64}),
-                "points": ("TV off, l1 per plane ~ ||h_i||^2", {"tv_noise_ratio": 0.0, "l1_plane_power": 2.0})}
+                "points": ("TV off, l1 per plane ~ ||h_i||^2 (= --prior points-weighted)", {"tv_noise_ratio": 0.0, "l1_plane_power": 2.0})}
     for name in args.scenes.split(","):
         t = time.perf_counter()
         sim = simulate.simulate_scene(name)

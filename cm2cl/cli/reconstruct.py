@@ -43,8 +43,9 @@ def register(sub):
                         % _DEFAULTS.tv_noise_ratio)
     g.add_argument("--prior", choices=list(PRIORS), default="default",
                    help="what the sample looks like: 'points' (beads, sparse cells): TV off, which spreads points "
-                        "into plateaus where the PSF blurs them (docs/paper_scenes.md); 'default': l1 and TV for "
-                        "extended structure. --l1/--tv win")
+                        "into plateaus where the PSF blurs them; 'points-weighted': TV off and each plane's l1 "
+                        "weight ~ ||h_i||^2, which keeps emitters in planes whose PSF spreads their light "
+                        "(docs/paper_scenes.md); 'default': l1 and TV for extended structure. --l1/--tv win")
     g.add_argument("--tv-axial-weight", type=float, default=_DEFAULTS.tv_axial_weight,
                    help="weight of axial differences in TV (non-cubic voxels: e.g. dx/dz)")
     g.add_argument("--anisotropic", action="store_true", help="anisotropic TV (default isotropic)")
