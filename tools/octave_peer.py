@@ -208,6 +208,7 @@ def main(argv=None):
         lines.append(f"| {name} | {it} | {stop} | {s:.0f} | {obj:.6g} | {gap(obj):.2e} | {res:.4f} |")
     lines += ["", "Depth order check: the authors' volume, taken in cm2cl's order, fits the data with residual "
               + "; ".join(f"{a:.4f} against {b:.4f} reversed (stop ratio {r:g})" for r, a, b in checks) + ".", "",
+              "The data carry no physical scale: the MIP axes read um but are pixels and plane indices.", "",
               "![authors](img/octave_peer_authors_mip.png)", "", "![cm2cl](img/octave_peer_cm2cl_mip.png)", ""]
     (DOCS / "octave_peer.md").write_text("\n".join(lines))
     print("\n".join(lines))
