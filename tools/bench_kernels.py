@@ -31,7 +31,7 @@ import pyopencl as cl
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from benchlib import copy_bandwidth, markdown_table, parse_size, write_section  # noqa: E402
-from bench_admm import problem  # noqa: E402
+from bench_admm import per_iteration, problem  # noqa: E402
 
 from cm2cl.device import get_runtime  # noqa: E402
 from cm2cl.solver.admm import ADMMSolver  # noqa: E402
@@ -81,7 +81,7 @@ def measure(size: str, iters: int, backend: str, bw: float):
     s = ADMMSolver(psf, p, backend=backend)
     s.solve(y)   # warm-up: kernel builds and first launches
     rec = s.solve(y)
-    wall = float(np.median(np.diff(rec.log_array("seconds"))))
+    wall = per_iteration(rec)
     with KernelTimer() as kt:
         s.solve(y)
     V = nz * s.P[0] * s.P[1] * s.dtype.itemsize
