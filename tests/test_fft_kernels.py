@@ -123,9 +123,14 @@ def test_lines_per_work_item_follow_the_simd_width(rt):
 
     from cm2cl.device.fft_kernels import _lines_per_item
 
-    caps = replace(rt.caps, vector_width_float=16, vector_width_double=8)
+    new = replace(rt.caps, platform_version="OpenCL 3.0 PoCL 3.1+debian  Linux, None+Asserts, RELOC, LLVM 15")
+    caps = replace(new, vector_width_float=16, vector_width_double=8)
     assert _lines_per_item(caps, np.float32) == 8 and _lines_per_item(caps, np.float64) == 8
-    caps = replace(rt.caps, vector_width_float=8, vector_width_double=4)
+    caps = replace(new, vector_width_float=8, vector_width_double=4)
     assert _lines_per_item(caps, np.float32) == 8 and _lines_per_item(caps, np.float64) == 4
-    caps = replace(rt.caps, vector_width_float=1, vector_width_double=3)
+    caps = replace(new, vector_width_float=1, vector_width_double=3)
     assert _lines_per_item(caps, np.float32) == 1 and _lines_per_item(caps, np.float64) == 2
+    # PoCL before 3.1 (PyPI's 3.0, LLVM 14) aborts compiling 8-line kernels on AVX-512: at most 4
+    old = replace(rt.caps, platform_version="OpenCL 3.0 PoCL 3.0-rc2  Linux, Release, RELOC, LLVM 14.0.6",
+                  vector_width_float=16, vector_width_double=8)
+    assert _lines_per_item(old, np.float32) == 4 and _lines_per_item(old, np.float64) == 4

@@ -22,6 +22,8 @@ and 13; other prime factors are refused.  Twiddles are computed in double on the
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 
 from . import kernels
@@ -78,9 +80,20 @@ def _lines_per_item(caps, dtype) -> int:
     float64 8.3 with 2, 5.6 with 4, 4.9 with 8."""
     width = caps.vector_width_float if np.dtype(dtype) == np.float32 else caps.vector_width_double
     v = 1
-    while v * 2 <= min(8, width):
+    while v * 2 <= min(_MAX_LINES_PER_ITEM_OLD_POCL if _old_pocl(caps) else 8, width):
         v *= 2
     return v
+
+
+#: PoCL before 3.1 (PyPI's pocl-binary-distribution 3.0, LLVM 14) aborts the process compiling the
+#: 8-line kernels on an AVX-512 CPU ("LLVM ERROR: Do not know how to scalarize this operator's
+#: operand!", AMD EPYC family 25); with 4 lines per work-item it compiles and runs (cm2cl demo, cold)
+_MAX_LINES_PER_ITEM_OLD_POCL = 4
+
+
+def _old_pocl(caps) -> bool:
+    m = re.search(r"PoCL\s+(\d+)\.(\d+)", caps.platform_version or "")
+    return bool(m) and (int(m.group(1)), int(m.group(2))) < (3, 1)
 
 
 def _cplx_item(dtype) -> int:
