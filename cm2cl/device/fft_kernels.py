@@ -80,15 +80,22 @@ def _lines_per_item(caps, dtype) -> int:
     float64 8.3 with 2, 5.6 with 4, 4.9 with 8."""
     width = caps.vector_width_float if np.dtype(dtype) == np.float32 else caps.vector_width_double
     v = 1
-    while v * 2 <= min(_MAX_LINES_PER_ITEM_OLD_POCL if _old_pocl(caps) else 8, width):
+    while v * 2 <= min(_max_lines(caps, dtype), width):
         v *= 2
     return v
 
 
-#: PoCL before 3.1 (PyPI's pocl-binary-distribution 3.0, LLVM 14) aborts the process compiling the
-#: 8-line kernels on an AVX-512 CPU ("LLVM ERROR: Do not know how to scalarize this operator's
-#: operand!", AMD EPYC family 25); with 4 lines per work-item it compiles and runs (cm2cl demo, cold)
-_MAX_LINES_PER_ITEM_OLD_POCL = 4
+#: PoCL before 3.1 (PyPI's pocl-binary-distribution 3.0, LLVM 14) reports this AVX-512 CPU's native
+#: widths (16 floats) but compiles without AVX-512 ("AVX vector argument ... without 'avx512f' enabled
+#: changes the ABI"): 512-bit vectors of lines made it abort the process ("LLVM ERROR: Do not know how to
+#: scalarize this operator's operand!", float32, 8 lines) or lose its kernels (float64, 4 lines:
+#: INVALID_KERNEL_NAME). Lines of a work-item then fill at most 256 bits: 4 complex float32, 2 float64.
+_OLD_POCL_VECTOR_BYTES = 32
+
+
+def _max_lines(caps, dtype) -> int:
+    """Most lines a work-item may transform together on this device (the vector types' limit)."""
+    return _OLD_POCL_VECTOR_BYTES // _cplx_item(dtype) if _old_pocl(caps) else 8
 
 
 def _old_pocl(caps) -> bool:
@@ -145,6 +152,8 @@ class ClPlan:
         vec = _lines_per_item(rt.caps, self.dtype) if cpu else 1
         row_ct, col_ct = ((1, 1 if cpu else 256, vec), (1 if cpu else 16, 1 if cpu else 256, vec)) \
             if group is None else ((tuple(group) + (1,))[:3], (tuple(group) + (1,))[:3])
+        # a forced shape (tests) still keeps to the lines the device's compiler can vectorise
+        row_ct, col_ct = ((c, t, min(v, _max_lines(rt.caps, self.dtype))) for c, t, v in (row_ct, col_ct))
         rows = self._line_kernels(defs, ("rows_r2c", "rows_c2r"), *row_ct, limit, 1)
         self.rows_local = rows is not None
         if rows:
