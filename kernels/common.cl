@@ -51,67 +51,6 @@ inline real_t group_sum(real_t v, __local real_t *scratch) {
     return r;
 }
 
-/* Add the work-group sums of the k values v[0..k) to partials[(slot0 + j) * stride + group_id]
- * (the buffer is zeroed once per iteration; slabs of a volume accumulate).  `scratch` holds
- * k * local size values.  All work-items must call it.  The k sums share one tree (one loop of
- * barriers): each sum's additions are those of group_sum, but PoCL compiles one tree loop in
- * 0.2 s where eight trees in sequence (update_w) took 18 s at the first launch. */
-inline void reduce_to(__global real_t *partials, const int stride, __local real_t *scratch,
-                      const real_t *v, const int k, const int slot0) {
-    const size_t lid = get_local_id(0), n = get_local_size(0);
-    for (int j = 0; j < k; j++) scratch[j * n + lid] = v[j];
-    barrier(CLK_LOCAL_MEM_FENCE);
-    for (size_t s = n / 2; s > 0; s >>= 1) {
-        if (lid < s)
-            for (int j = 0; j < k; j++) scratch[j * n + lid] += scratch[j * n + lid + s];
-        barrier(CLK_LOCAL_MEM_FENCE);
-    }
-    if (lid == 0)
-        for (int j = 0; j < k; j++) partials[(size_t)(slot0 + j) * stride + get_group_id(0)] += scratch[j * n];
-}
-
-/* Coordinates (x, y, z) of element i = (z*ny + y)*nx + x of a slab of ny x nx planes, and their
- * advance by a fixed stride: grid-stride loops then need no integer division per element. */
-typedef struct { int cx, cy, cz; } coord_t;
-
-inline coord_t coords_of(const size_t i, const int ny, const int nx) {
-    coord_t c;
-    c.cx = (int)(i % (size_t)nx);
-    c.cy = (int)((i / (size_t)nx) % (size_t)ny);
-    c.cz = (int)(i / ((size_t)nx * (size_t)ny));
-    return c;
-}
-
-inline void coords_advance(coord_t *c, const coord_t s, const int ny, const int nx) {
-    c->cx += s.cx;
-    if (c->cx >= nx) { c->cx -= nx; c->cy += 1; }
-    c->cy += s.cy;
-    if (c->cy >= ny) { c->cy -= ny; c->cz += 1; }
-    c->cz += s.cz;
-}
-
-/* The elements [*first, *end) with stride *step that a work-item reduces (it sums K values; the
- * sums are then combined by a tree in the work-group and by reduce_partials: pairwise-like
- * summation, error O(log n) roundings rather than O(n)).  Work-group g covers
- * the contiguous block [g*L*K, (g+1)*L*K) of the n elements (L = local size, K = elements per
- * work-item).  Inside the block, `contiguous` != 0 gives each work-item K neighbouring elements
- * (CPUs: work-items run one after the other, so the block is walked in order), else the work-items
- * interleave with stride L (GPUs: neighbouring work-items read neighbouring elements, coalesced). */
-inline void reduction_range(const size_t n, const int K, const int contiguous,
-                            size_t *first, size_t *end, size_t *step) {
-    const size_t L = get_local_size(0), lid = get_local_id(0);
-    const size_t block = (size_t)get_group_id(0) * L * (size_t)K;
-    if (contiguous) {
-        *first = block + lid * (size_t)K;
-        *end = min(n, *first + (size_t)K);
-        *step = 1;
-    } else {
-        *first = block + lid;
-        *end = min(n, block + L * (size_t)K);
-        *step = L;
-    }
-}
-
 /* Forward differences (gx, gy, aw * gz) at element i = (z*ny + y)*nx + x of a slab of `planes`
  * planes, Neumann boundary (zero past the last index); v_next is the next slab of the volume
  * (its first plane is the z+1 neighbour of the last plane) when has_next.  The lateral loads use
@@ -156,15 +95,156 @@ inline real_t div_at(__global const real_t *px, __global const real_t *py, __glo
  *     w = max(s - c/mu, 0),   rho = min(mu s, c)      (rho' = rho + mu (x - w') = mu s - mu w').
  * Rounding: w = 0 and rho are as accurate as the explicit ones; where w > 0 it carries an absolute
  * error of a few ulps of c/mu (the explicit update's is of x). */
-inline real_t split_w(const real_t s, const real_t c, const real_t mu) { return fmax(s - c / mu, (real_t)0); }
-inline real_t split_rho(const real_t s, const real_t c, const real_t mu) { return fmin(mu * s, c); }
+#define split_w(s, c, mu) fmax((s) - (c) / (mu), (real_t)0)
+#define split_rho(s, c, mu) fmin((mu) * (s), (c))
+/* (s, c, mu: reals or realv vectors alike) */
 
-/* Loop over the elements a work-item reduces (see reduction_range), with their coordinates
- * (x, y, z) kept up to date without divisions.  Use: FOR_EACH_REDUCED(i, n, ...) { body } */
-#define FOR_EACH_REDUCED(i, n, K, contiguous, ny, nx, x, y, z)                                  \
-    size_t i##_first, i##_end, i##_step;                                                        \
-    reduction_range(n, K, contiguous, &i##_first, &i##_end, &i##_step);                         \
-    coord_t i##_c = coords_of(i##_first, ny, nx);                                               \
-    const coord_t i##_s = coords_of(i##_step, ny, nx);                                          \
-    for (size_t i = i##_first; i < i##_end; i += i##_step, coords_advance(&i##_c, i##_s, ny, nx)) \
-        for (int x = i##_c.cx, y = i##_c.cy, z = i##_c.cz, i##_once = 1; i##_once; i##_once = 0)
+/* ---- Row kernels: the fused update-and-reduce kernels (update_w, update_v, tv_finish) ----------------
+ * A work-item handles VW neighbouring x of `rows` rows of one plane, as vectors of VW reals, and adds
+ * its sums into one partial per sum (reduce_partials adds those up): no barriers, no local memory.
+ * VW is a build define (cm2cl/device/kernels.py): 32 bytes of reals on CPUs, where PoCL compiles a
+ * work-item's vector code to SIMD instructions (work-items with loops or barriers stay scalar, 5x
+ * slower: docs/benchmarks.md), and 1 on GPUs, where neighbouring work-items read neighbouring x.
+ * Lanes past the row's end (x >= nx: `cnt` = nx - x0 lanes are real) load the row's last element,
+ * are never written and are masked out of the sums. */
+#ifndef VW
+#define VW 1
+#endif
+#define CAT_(a, b) a##b
+#define CAT(a, b) CAT_(a, b)
+#if VW == 1
+typedef real_t realv;
+#elif VW == 4 || VW == 8
+typedef CAT(REAL, VW) realv;
+#ifdef REAL_IS_DOUBLE
+typedef CAT(long, VW) maskv;
+#else
+typedef CAT(int, VW) maskv;
+#endif
+#else
+#error "VW must be 1, 4 or 8"
+#endif
+
+/* the VW reals at p[i..): cnt of them real (cnt >= 1), the rest copies of the last */
+inline realv load_row(__global const real_t *p, const size_t i, const int cnt) {
+#if VW == 1
+    return p[i];
+#else
+    if (cnt >= VW) return CAT(vload, VW)(0, p + i);
+    real_t t[VW];
+    for (int k = 0; k < VW; k++) t[k] = p[i + min(k, cnt - 1)];
+    return CAT(vload, VW)(0, t);
+#endif
+}
+
+/* p[i..i+min(cnt, VW)) = the first lanes of v */
+inline void store_row(const realv v, __global real_t *p, const size_t i, const int cnt) {
+#if VW == 1
+    p[i] = v;
+#else
+    if (cnt >= VW) { CAT(vstore, VW)(v, 0, p + i); return; }
+    real_t t[VW];
+    CAT(vstore, VW)(v, 0, t);
+    for (int k = 0; k < cnt; k++) p[i + k] = t[k];
+#endif
+}
+
+/* v's lanes moved one down, `next` in the last one (each lane's right neighbour) */
+inline realv from_right(const realv v, const real_t next) {
+#if VW == 1
+    return next;
+#elif VW == 4
+    return (realv)(v.s123, next);
+#else
+    return (realv)(v.s1234, v.s567, next);
+#endif
+}
+
+/* v's lanes moved one up, `prev` in the first one (each lane's left neighbour) */
+inline realv from_left(const real_t prev, const realv v) {
+#if VW == 1
+    return prev;
+#elif VW == 4
+    return (realv)(prev, v.s012);
+#else
+    return (realv)(prev, v.s0123, v.s456);
+#endif
+}
+
+/* v where lane k < lim, else 0 */
+inline realv lanes_below(const realv v, const int lim) {
+#if VW == 1
+    return 0 < lim ? v : (real_t)0;
+#elif VW == 4
+    return select((realv)0, v, (maskv)(0, 1, 2, 3) < (maskv)lim);
+#else
+    return select((realv)0, v, (maskv)(0, 1, 2, 3, 4, 5, 6, 7) < (maskv)lim);
+#endif
+}
+
+/* sum of the lanes (pairwise) */
+inline real_t lanes_sum(const realv v) {
+#if VW == 1
+    return v;
+#elif VW == 4
+    const CAT(REAL, 2) b = v.lo + v.hi;
+    return b.x + b.y;
+#else
+    const CAT(REAL, 4) a = v.lo + v.hi;
+    const CAT(REAL, 2) b = a.lo + a.hi;
+    return b.x + b.y;
+#endif
+}
+
+/* The work-item's place: x0 (first x), cnt (real lanes), rows [y0, y1) of plane z, and its partial
+ * index g; returns 0 for the work-items past the last x block (the launch pads dimension 0). */
+inline int row_item(const int nx, const int ny, const int rows,
+                    int *x0, int *cnt, int *y0, int *y1, int *z, size_t *g) {
+    const int nxb = (nx + VW - 1) / VW, nyb = (ny + rows - 1) / rows;
+    const int xb = get_global_id(0), yb = get_global_id(1);
+    if (xb >= nxb) return 0;
+    *z = get_global_id(2);
+    *x0 = xb * VW;
+    *cnt = nx - *x0;
+    *y0 = yb * rows;
+    *y1 = min(ny, *y0 + rows);
+    *g = (size_t)xb + (size_t)nxb * ((size_t)yb + (size_t)nyb * (size_t)*z);
+    return 1;
+}
+
+/* partials[(slot0 + j) * stride + g] += v[j] for j < k (zeroed once per iteration; slabs accumulate) */
+inline void add_partials(__global real_t *partials, const int stride, const size_t g, const int slot0,
+                         const real_t *v, const int k) {
+    for (int j = 0; j < k; j++) partials[(size_t)(slot0 + j) * stride + g] += v[j];
+}
+
+/* grad_at for the VW elements at i = (z*ny + y)*nx + x0 (xv: x there) */
+inline void grad_row(__global const real_t *v, __global const real_t *v_next, const int has_next,
+                     const size_t i, const realv xv, const int cnt, const int z, const int y,
+                     const int planes, const int ny, const int nx, const real_t aw,
+                     realv *gx, realv *gy, realv *gz) {
+    const size_t plane = (size_t)ny * nx;
+    /* the row's last element is its own right neighbour (clamped load): gx = 0 there, as in grad_at */
+    *gx = from_right(xv, v[i + min(VW, cnt - 1)]) - xv;
+    *gy = y < ny - 1 ? load_row(v, i + nx, cnt) - xv : (realv)0;
+    *gz = 0;
+    if (z < planes - 1) *gz = aw * (load_row(v, i + plane, cnt) - xv);
+    else if (has_next) *gz = aw * (load_row(v_next, i - (size_t)z * plane, cnt) - xv);
+}
+
+/* div_at for the VW elements at i = (z*ny + y)*nx + x0 */
+inline realv div_row(__global const real_t *px, __global const real_t *py, __global const real_t *pz,
+                     __global const real_t *pz_prev, const int has_prev, const int has_next,
+                     const size_t i, const int x0, const int cnt, const int z, const int y,
+                     const int planes, const int prev_planes, const int ny, const int nx,
+                     const real_t aw) {
+    const size_t plane = (size_t)ny * nx;
+    const realv pxv = load_row(px, i, cnt);
+    realv d = lanes_below(pxv, cnt - 1) - from_left(x0 > 0 ? px[i - 1] : (real_t)0, pxv);
+    if (y < ny - 1) d += load_row(py, i, cnt);
+    if (y > 0) d -= load_row(py, i - nx, cnt);
+    realv dz = (z == planes - 1 && !has_next) ? (realv)0 : load_row(pz, i, cnt);
+    if (z > 0) dz -= load_row(pz, i - plane, cnt);
+    else if (has_prev) dz -= load_row(pz_prev, (size_t)(prev_planes - 1) * plane + (i - (size_t)z * plane), cnt);
+    return d + aw * dz;
+}

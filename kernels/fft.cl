@@ -24,8 +24,6 @@
 #ifndef FFT_VEC
 #define FFT_VEC 1
 #endif
-#define CAT_(a, b) a##b
-#define CAT(a, b) CAT_(a, b)
 #if FFT_VEC == 1
 typedef cplx_t fc_t;
 #define FC_WIDTH 2

@@ -1,16 +1,6 @@
 /* The w split (l1 + non-negativity) and the v split (crop-aware data term) of the ADMM, each
- * fused with its dual update and with the reductions the log and the stopping rule need.
- * Reductions use a grid-stride loop over the slab (global size = groups * local size); `scratch`
- * holds (number of sums) x local size values (reduce_to in common.cl). */
-
-/* TV integrand of x at element i of a slab (forward differences, Neumann boundary). */
-inline real_t tv_at(__global const real_t *x, __global const real_t *x_next, const int has_next,
-                    const size_t i, const int z, const int y, const int xx,
-                    const int planes, const int ny, const int nx, const real_t aw, const int iso) {
-    real_t gx, gy, gz;
-    grad_at(x, x_next, has_next, i, z, y, xx, planes, ny, nx, aw, &gx, &gy, &gz);
-    return iso ? sqrt(gx * gx + gy * gy + gz * gz) : fabs(gx) + fabs(gy) + fabs(gz);
-}
+ * fused with its dual update and with the reductions the log and the stopping rule need: row kernels
+ * (common.cl), each work-item adding its sums into the partials that reduce_partials adds up. */
 
 /* After the x step, for one slab of `planes` planes, the w split and its dual from the split's state s
  * (split_w, split_rho in common.cl; l1_s, mu_s: the weight and penalty s was made with):
@@ -19,37 +9,43 @@ inline real_t tv_at(__global const real_t *x, __global const real_t *x_next, con
  *     w' = max(s' - l1 l1w[z]/mu_w, 0),  rho' = rho + mu_w (x - w') = min(mu_w s', l1 l1w[z])
  * (l1w: the weight of each plane of the slab in the l1 term).
  * Reduces into slots slot0 + (0..7): ||x - x_old||^2, ||x||^2, sum l1w|x|, TV(x), ||x - w'||^2, ||w' - w||^2,
- * ||w'||^2, ||rho'||^2 (the last two scale the relative residuals of the stopping rule).
- * x_next is the next slab of x (for the axial difference across slabs) when has_next. */
+ * ||w'||^2, ||rho'||^2 (the last two scale the relative residuals of the stopping rule); TV(x) with
+ * forward differences (Neumann boundary), x_next the next slab of x when has_next.
+ * A row kernel (common.cl): global size (x blocks, row blocks, planes). */
 __kernel void update_w(__global const real_t *x, __global const real_t *x_next, const int has_next,
                        __global const real_t *x_old, __global real_t *s,
                        const real_t l1, __global const real_t *l1w, const real_t mu_w,
                        const real_t l1_s, const real_t mu_s, const real_t aw, const int iso,
-                       const int planes, const int ny, const int nx,
-                       __global real_t *partials, const int pstride, __local real_t *scratch,
-                       const int slot0, const int per_item, const int contiguous) {
-    const size_t n = (size_t)planes * ny * nx;
-    real_t a0 = 0, a1 = 0, a2 = 0, a3 = 0, a4 = 0, a5 = 0, a6 = 0, a7 = 0;
-    FOR_EACH_REDUCED(i, n, per_item, contiguous, ny, nx, xx, y, z) {
-        const real_t xi = x[i], si = s[i];
-        const real_t lw = l1w[z];   /* the plane's weight of the l1 term */
-        const real_t c = l1 * lw;
-        const real_t cs = l1_s * lw;
-        const real_t sn = xi + split_rho(si, cs, mu_s) / mu_w;
-        const real_t wn = split_w(sn, c, mu_w), rn = split_rho(sn, c, mu_w);
-        const real_t dx = xi - x_old[i], pw = xi - wn, dw = wn - split_w(si, cs, mu_s);
-        s[i] = sn;
-        a0 += dx * dx;
-        a1 += xi * xi;
-        a2 += lw * fabs(xi);
-        a3 += tv_at(x, x_next, has_next, i, z, y, xx, planes, ny, nx, aw, iso);
-        a4 += pw * pw;
-        a5 += dw * dw;
-        a6 += wn * wn;
-        a7 += rn * rn;
+                       const int planes, const int ny, const int nx, const int rows,
+                       __global real_t *partials, const int pstride, const int slot0) {
+    int x0, cnt, y0, y1, z;
+    size_t g;
+    if (!row_item(nx, ny, rows, &x0, &cnt, &y0, &y1, &z, &g)) return;
+    const real_t lw = l1w[z];   /* the plane's weight of the l1 term */
+    const real_t c = l1 * lw, cs = l1_s * lw;
+    realv a0 = 0, a1 = 0, a2 = 0, a3 = 0, a4 = 0, a5 = 0, a6 = 0, a7 = 0;
+    for (int y = y0; y < y1; y++) {
+        const size_t i = ((size_t)z * ny + y) * nx + x0;
+        const realv xi = load_row(x, i, cnt), si = load_row(s, i, cnt);
+        const realv sn = xi + split_rho(si, cs, mu_s) / mu_w;
+        const realv wn = split_w(sn, c, mu_w), rn = split_rho(sn, c, mu_w);
+        const realv dx = xi - load_row(x_old, i, cnt), pw = xi - wn, dw = wn - split_w(si, cs, mu_s);
+        store_row(sn, s, i, cnt);
+        realv gx, gy, gz;
+        grad_row(x, x_next, has_next, i, xi, cnt, z, y, planes, ny, nx, aw, &gx, &gy, &gz);
+        const realv tv = iso ? sqrt(gx * gx + gy * gy + gz * gz) : fabs(gx) + fabs(gy) + fabs(gz);
+        a0 += lanes_below(dx * dx, cnt);
+        a1 += lanes_below(xi * xi, cnt);
+        a2 += lanes_below(lw * fabs(xi), cnt);
+        a3 += lanes_below(tv, cnt);
+        a4 += lanes_below(pw * pw, cnt);
+        a5 += lanes_below(dw * dw, cnt);
+        a6 += lanes_below(wn * wn, cnt);
+        a7 += lanes_below(rn * rn, cnt);
     }
-    const real_t sums[8] = {a0, a1, a2, a3, a4, a5, a6, a7};
-    reduce_to(partials, pstride, scratch, sums, 8, slot0);
+    const real_t sums[8] = {lanes_sum(a0), lanes_sum(a1), lanes_sum(a2), lanes_sum(a3),
+                            lanes_sum(a4), lanes_sum(a5), lanes_sum(a6), lanes_sum(a7)};
+    add_partials(partials, pstride, g, slot0, sums, 8);
 }
 
 /* w (rho = 0) or rho (rho = 1) of the w split over one slab, from its state s as update_w derives them
@@ -71,30 +67,33 @@ __kernel void split_state(__global real_t *out, __global const real_t *s, const 
  * ||xi'||^2. */
 __kernel void update_v(__global real_t *v, __global real_t *xi, __global const real_t *hx,
                        __global const real_t *cty, __global const real_t *cw, const real_t mu_v,
-                       const int py, const int px,
-                       __global real_t *partials, const int pstride, __local real_t *scratch, const int slot0,
-                       const int per_item, const int contiguous) {
+                       const int py, const int px, const int rows,
+                       __global real_t *partials, const int pstride, const int slot0) {
     /* cty: the measurement embedded in the padded grid; cw: each pixel's weight in the data term (1 on
-       the sensor, 0 outside it and on masked pixels): v = (cw y + mu_v Hx + xi) / (cw + mu_v) */
-    const size_t n = (size_t)py * px;
-    real_t a0 = 0, a1 = 0, a2 = 0, a3 = 0, a4 = 0, a5 = 0;
-    size_t i0, i1, di;
-    reduction_range(n, per_item, contiguous, &i0, &i1, &di);
-    for (size_t i = i0; i < i1; i += di) {
-        const real_t h = hx[i], m = cw[i];
-        const real_t vn = (m * cty[i] + mu_v * h + xi[i]) / (m + mu_v);
-        const real_t pv = h - vn, dv = vn - v[i];
-        const real_t xn = xi[i] + mu_v * pv;
-        const real_t d = h - cty[i];
-        xi[i] = xn;
-        v[i] = vn;
-        a2 += m * d * d;
-        a0 += pv * pv;
-        a1 += dv * dv;
-        a3 += h * h;
-        a4 += vn * vn;
-        a5 += xn * xn;
+       the sensor, 0 outside it and on masked pixels): v = (cw y + mu_v Hx + xi) / (cw + mu_v).
+       A row kernel (common.cl) over the one plane. */
+    int x0, cnt, y0, y1, z;
+    size_t g;
+    if (!row_item(px, py, rows, &x0, &cnt, &y0, &y1, &z, &g)) return;
+    realv a0 = 0, a1 = 0, a2 = 0, a3 = 0, a4 = 0, a5 = 0;
+    for (int y = y0; y < y1; y++) {
+        const size_t i = (size_t)y * px + x0;
+        const realv h = load_row(hx, i, cnt), m = load_row(cw, i, cnt), t = load_row(cty, i, cnt);
+        const realv xo = load_row(xi, i, cnt);
+        const realv vn = (m * t + mu_v * h + xo) / (m + mu_v);
+        const realv pv = h - vn, dv = vn - load_row(v, i, cnt);
+        const realv xn = xo + mu_v * pv;
+        const realv d = h - t;
+        store_row(xn, xi, i, cnt);
+        store_row(vn, v, i, cnt);
+        a0 += lanes_below(pv * pv, cnt);
+        a1 += lanes_below(dv * dv, cnt);
+        a2 += lanes_below(m * d * d, cnt);
+        a3 += lanes_below(h * h, cnt);
+        a4 += lanes_below(vn * vn, cnt);
+        a5 += lanes_below(xn * xn, cnt);
     }
-    const real_t sums[6] = {a0, a1, a2, a3, a4, a5};
-    reduce_to(partials, pstride, scratch, sums, 6, slot0);
+    const real_t sums[6] = {lanes_sum(a0), lanes_sum(a1), lanes_sum(a2), lanes_sum(a3), lanes_sum(a4),
+                            lanes_sum(a5)};
+    add_partials(partials, pstride, g, slot0, sums, 6);
 }

@@ -56,34 +56,37 @@ __kernel void tv_dual_step(__global real_t *px, __global real_t *py, __global re
 }
 
 /* u' = z - tau div p and eta' = lambda_tv div p (tau = 0, TV off: u' = x, eta' = 0); z as tv_residual
- * stored it.  Reduces into slots slot0 + (0..3): ||x - u'||^2, ||u' - u||^2, ||u'||^2, ||eta'||^2. */
+ * stored it.  Reduces into slots slot0 + (0..3): ||x - u'||^2, ||u' - u||^2, ||u'||^2, ||eta'||^2.
+ * A row kernel (common.cl): global size (x blocks, row blocks, planes). */
 __kernel void tv_finish(__global real_t *u, __global const real_t *x, __global const real_t *z,
                         __global const real_t *px, __global const real_t *py, __global const real_t *pz,
                         __global const real_t *pz_prev, const int has_prev, const int prev_planes,
                         const int has_next, const real_t tv, const real_t tau, const real_t aw,
-                        const int planes, const int ny, const int nx,
-                        __global real_t *partials, const int pstride, __local real_t *scratch,
-                        const int slot0, const int per_item, const int contiguous) {
-    const size_t n = (size_t)planes * ny * nx;
-    real_t a0 = 0, a1 = 0, a2 = 0, a3 = 0;
-    FOR_EACH_REDUCED(i, n, per_item, contiguous, ny, nx, xx, y, zz) {
-        const real_t xv = x[i];
-        real_t un = xv, en = 0;
+                        const int planes, const int ny, const int nx, const int rows,
+                        __global real_t *partials, const int pstride, const int slot0) {
+    int x0, cnt, y0, y1, zz;
+    size_t g;
+    if (!row_item(nx, ny, rows, &x0, &cnt, &y0, &y1, &zz, &g)) return;
+    realv a0 = 0, a1 = 0, a2 = 0, a3 = 0;
+    for (int y = y0; y < y1; y++) {
+        const size_t i = ((size_t)zz * ny + y) * nx + x0;
+        const realv xv = load_row(x, i, cnt);
+        realv un = xv, en = 0;
         if (tau > 0) {
-            const real_t d = div_at(px, py, pz, pz_prev, has_prev, has_next, i, zz, y, xx,
+            const realv d = div_row(px, py, pz, pz_prev, has_prev, has_next, i, x0, cnt, zz, y,
                                     planes, prev_planes, ny, nx, aw);
-            un = z[i] - tau * d;
+            un = load_row(z, i, cnt) - tau * d;
             en = tv * d;
         }
-        const real_t pu = xv - un, du = un - u[i];
-        u[i] = un;
-        a0 += pu * pu;
-        a1 += du * du;
-        a2 += un * un;
-        a3 += en * en;
+        const realv pu = xv - un, du = un - load_row(u, i, cnt);
+        store_row(un, u, i, cnt);
+        a0 += lanes_below(pu * pu, cnt);
+        a1 += lanes_below(du * du, cnt);
+        a2 += lanes_below(un * un, cnt);
+        a3 += lanes_below(en * en, cnt);
     }
-    const real_t sums[4] = {a0, a1, a2, a3};
-    reduce_to(partials, pstride, scratch, sums, 4, slot0);
+    const real_t sums[4] = {lanes_sum(a0), lanes_sum(a1), lanes_sum(a2), lanes_sum(a3)};
+    add_partials(partials, pstride, g, slot0, sums, 4);
 }
 
 /* eta = lambda_tv div p over one slab: the TV split's dual as the iteration derives it (state readback). */

@@ -1,5 +1,5 @@
 """Run every OpenCL kernel of cm2cl under Oclgrind (Debian's `oclgrind`, 21.10) at small sizes, in float32
-and float64, with both reduction layouts, slabbed and whole volumes, and report memory errors, data races
+and float64, with row kernels at the GPU and CPU widths, slabbed and whole volumes, and report memory errors, data races
 and non-uniform writes; writes docs/oclgrind.md.
 
     python tools/oclgrind_check.py            # needs `apt-get install oclgrind`; a few minutes
@@ -32,7 +32,7 @@ ERROR_PATTERNS = ("Invalid read", "Invalid write", "Data race", "Uniform write",
 def workload():
     """Every kernel at least once: forward/adjoint, the FFT (radices 2, 3, 4, 5, 7; lines in local memory
     and through the multi-pass kernels), the reikna path's layout kernels, ADMM iterations with TV
-    (isotropic and not), whole and in two slabs (halo paths), both reduction layouts, TV off, streamed
+    (isotropic and not), whole and in two slabs (halo paths), row kernels at the GPU and CPU widths, TV off, streamed
     slabs with plane-weighted l1."""
     import numpy as np
     import pyopencl.array as cl_array
@@ -74,12 +74,12 @@ def workload():
         grey_opening(rng.random((9, 13)).astype(dtype), 1, 1)     # every line direction, min and max
         psf = rng.random((3, 8, 10)) ** 4
         meas = rng.random((8, 10))
-        for contiguous in (0, 1):
-            for slabs, iso in ((None, True), (2, False)):
+        for vw, rows in ((1, None), (32 // np.dtype(dtype).itemsize, 3)):   # row kernels: GPU and CPU widths
+            for slabs, iso in ((None, True), (2, False)):   # width 30: a partial vector ends each row
                 s = ADMMSolver(psf.astype(dtype), ADMMParams(max_iter=3, tol=0, l1=1e-3, tv=1e-3, tv_isotropic=iso),
-                               dtype=dtype, backend="cl", padded_shape=(16, 20), max_slab_planes=slabs)
+                               dtype=dtype, backend="cl", padded_shape=(16, 30), max_slab_planes=slabs)
                 for part in s.parts:
-                    part.contiguous = np.int32(contiguous)
+                    s._row_layout(part, vw, rows)
                 s.solve(meas.astype(dtype))
                 for name in ("w", "rho", "eta"):   # the state the iteration derives (split_state, tv_eta)
                     s.get_volume(name)
@@ -121,7 +121,7 @@ def main(argv=None):
              f"Made by `python tools/oclgrind_check.py` ({' '.join(version[:2])}, flags `--data-races "
              f"--uniform-writes`), {sec:.0f} s. Workload: `tools/oclgrind_check.py --workload` (float32 and "
              "float64; cm2cl's own FFT on sizes with radices 2, 3, 4, 5, 7; forward and adjoint; ADMM with "
-             "isotropic and anisotropic TV, whole and in two slabs, both reduction layouts).", "",
+             "isotropic and anisotropic TV, whole and in two slabs, row kernels at the GPU and CPU widths).", "",
              f"- kernels in `kernels/*.cl`: {len(want)}; ran under Oclgrind: {len(want & ran)}"
              + (f"; **not run: {', '.join(missing)}**" if missing else ""),
              f"- findings: {len(findings)}" + ("" if findings else " (no invalid access, data race or "

@@ -58,6 +58,19 @@ def build_options(dtype, defines: dict | None = None) -> list[str]:
     return opts
 
 
+def row_width(rt, dtype) -> int:
+    """VW of the row kernels (kernels/common.cl): reals per work-item, 32 bytes of them on CPUs (PoCL
+    turns a work-item's vectors into SIMD code; 32 bytes, not 64, because PyPI's PoCL before 3.1
+    compiles AVX-512 CPUs without AVX-512, see fft_kernels.py), 1 elsewhere (GPUs: neighbouring
+    work-items on neighbouring x)."""
+    return 32 // np.dtype(dtype).itemsize if rt.caps.kind == "CPU" else 1
+
+
+def _defines(rt, dtype, defines: dict | None) -> dict:
+    """The build's defines: VW for this device unless given."""
+    return {"VW": row_width(rt, dtype), **(defines or {})}
+
+
 def group_of(name: str) -> tuple:
     """The files built in one program with ``kernels/<name>``: its group, or the file alone."""
     return next((g for g in GROUPS if name in g), (name,))
@@ -68,7 +81,7 @@ def program(rt, name: str, dtype, defines: dict | None = None):
     (cached on the runtime)."""
     import pyopencl as cl
 
-    opts = build_options(dtype, defines)
+    opts = build_options(dtype, _defines(rt, dtype, defines))
     files = group_of(name)
 
     def build():
@@ -86,7 +99,7 @@ def program(rt, name: str, dtype, defines: dict | None = None):
 
 def kernel(rt, name: str, kernel_name: str, dtype, defines: dict | None = None):
     """A cached kernel object ``kernel_name`` from ``kernels/<name>``."""
-    opts = tuple(build_options(dtype, defines))
+    opts = tuple(build_options(dtype, _defines(rt, dtype, defines)))
     return rt.cached(("kernel", group_of(name), opts, kernel_name),
                      lambda: getattr(program(rt, name, dtype, defines), kernel_name))
 

@@ -44,21 +44,22 @@ from .parts import Part
 from .result import Reconstruction
 from .memory import fft_scratch_per_plane, memory_estimate, plan_layout
 
-# Slots of the per-iteration reduction buffer.
 # Slots of the per-iteration reduction buffer, in the order each fused kernel writes them.
 (DX2, X2, L1, TV, RW2, SW2, W2, RHO2,          # update_w
  RV2, SV2, DATA2, HX2, V2, XI2,                # update_v
  RU2, SU2, U2, ETA2) = range(18)               # tv_finish
 NSLOTS = 18
-#: sums each fused kernel reduces (its __local scratch holds this many values per work-item)
-SUMS = {"update_w": RV2 - DX2, "update_v": RU2 - RV2, "tv_finish": NSLOTS - RU2}
 #: volumes of the state the iteration derives instead of storing (module docstring)
 DERIVED = ("w", "rho", "eta")
 
 log = logging.getLogger(__name__)
-#: elements each work-item of a reduction handles (PoCL on 2 cores: 64 beat 16 and 256 by
-#: 1.1-1.6x; GPUs keep hundreds of work-groups at this size for a few million voxels)
-PER_ITEM = 64
+#: partials per sum of the fused update-and-reduce kernels at most (row kernels, kernels/common.cl:
+#: a work-item per VW x of `rows` rows of a plane): enough work-items for a GPU's cores, few enough
+#: that reduce_partials' pass stays small next to a volume's
+PARTIALS = {"CPU": 2**14, "GPU": 2**18}
+#: elements per work-item of the row kernels at least (where the columns are that long): the partials
+#: then take at most 1/32 of the volume they sum (the memory model counts on it)
+ROW_ELEMENTS = NSLOTS * 32
 
 def pixel_weights(weights, shape) -> np.ndarray:
     """The data term's per-pixel weights: ones, or ``weights`` checked (the sensor's shape, finite, >= 0,
@@ -155,13 +156,7 @@ class ADMMSolver:
                  ("reduce.cl", "reduce_partials")]
         for part in self.parts:
             part.k = {n: kernels.kernel(part.rt, f, n, self.dtype) for f, n in names}
-            # reductions: each work-item walks contiguous elements on CPUs, interleaved on GPUs
-            part.contiguous = np.int32(part.rt.caps.kind == "CPU")
-            part.local = {n: kernels.work_group_size(part.rt, part.k[n])
-                          for n in ("update_w", "update_v", "tv_finish", "reduce_partials")}
-            # one partial sum per work-group of the largest launch, per slot
-            part.pstride = -(-part.max_planes * int(np.prod(P)) // (min(part.local.values()) * PER_ITEM))
-            part.partials = part.rt.zeros(NSLOTS * part.pstride, self.dtype)
+            self._row_layout(part, kernels.row_width(part.rt, self.dtype))
             part.out = part.rt.zeros(NSLOTS, self.dtype)
             part.plan2d = get_plan(part.rt, P, 1, self.dtype, self.backend)
 
@@ -214,13 +209,28 @@ class ADMMSolver:
         """Launch over a (nx, ny, planes) range: coordinates without divisions."""
         kernels.launch(part.rt, part.k[name], (self.P[1], self.P[0], int(planes)), *args)
 
-    def _red(self, part, name, n, slot, *args):
-        """Launch a fused update + reduction over n elements; its sums go to partials[slot...]."""
-        L = part.local[name]
-        groups = -(-int(n) // (L * PER_ITEM))
-        part.k[name](part.rt.queue, (groups * L,), (L,), *args, part.partials.data, np.int32(part.pstride),
-                     kernels.local_memory(SUMS[name] * L * self.dtype.itemsize), np.int32(slot), np.int32(PER_ITEM),
-                     part.contiguous)
+    def _row_layout(self, part, vw: int, rows: int | None = None):
+        """The row kernels' work on ``part`` (kernels/common.cl): ``vw`` reals per work-item (the
+        kernels' VW, built in) and ``rows`` rows each (by default as few as keep the partials per sum
+        within PARTIALS for the largest slab), and the partials buffer that layout needs."""
+        ny, nx = self.P
+        nxb = -(-nx // vw)
+        if rows is None:
+            cap = PARTIALS.get(part.rt.caps.kind, PARTIALS["GPU"])
+            rows = min(ny, max(-(-ROW_ELEMENTS // vw), -(-nxb * ny * part.max_planes // cap)))
+        part.vw, part.rows = vw, int(rows)
+        part.k.update({n: kernels.kernel(part.rt, f, n, self.dtype, {"VW": vw})
+                       for f, n in (("splits.cl", "update_w"), ("splits.cl", "update_v"), ("tv.cl", "tv_finish"))})
+        part.local = kernels.work_group_size(part.rt, part.k["reduce_partials"])
+        part.pstride = nxb * -(-ny // part.rows) * part.max_planes   # one partial per work-item and sum
+        part.partials = part.rt.zeros(NSLOTS * part.pstride, self.dtype)
+
+    def _rows(self, part, name, planes, slot, *args):
+        """Launch a fused update + reduction (a row kernel) over ``planes`` planes; its sums go to the
+        partials of slots slot...; ``args``: the kernel's arguments before ``rows``."""
+        ny, nx = self.P
+        kernels.launch(part.rt, part.k[name], (-(-nx // part.vw), -(-ny // part.rows), int(planes)), *args,
+                       np.int32(part.rows), part.partials.data, np.int32(part.pstride), np.int32(slot))
 
     def _next(self, i, j, name):
         """(array, has_next): the plane after slab j of part i, in part i's memory."""
@@ -300,7 +310,7 @@ class ADMMSolver:
         aw, iso = R(self.p.tv_axial_weight), I(1 if self.p.tv_isotropic else 0)
         for i, part, j, n, a in self._each_slab(("x", "g", "s"), ("s",)):
             xn, has_next = self._next(i, j, "x")
-            self._red(part, "update_w", a["x"].size, DX2, a["x"].data, (xn if has_next else a["x"]).data,
+            self._rows(part, "update_w", n, DX2, a["x"].data, (xn if has_next else a["x"]).data,
                       I(has_next), a["g"].data, a["s"].data, R(l1), part.l1w[j].data, R(mu_w), R(l1_s), R(mu_s),
                       aw, iso, I(n), I(ny), I(nx))
         self.l1_split = (float(l1), float(mu_w))
@@ -445,7 +455,7 @@ class ADMMSolver:
             # ---- w split (+ objective terms of x)
             self.w_step(ctl.l1, mu_w)
             # ---- v split (the plane lives on part 0)
-            self._red(p0, "update_v", ny * nx, RV2, pl0["v"].data, pl0["xi"].data, pl0["hx"].data,
+            self._rows(p0, "update_v", 1, RV2, pl0["v"].data, pl0["xi"].data, pl0["hx"].data,
                       pl0["cty"].data, pl0["cw"].data, R(mu_v), I(ny), I(nx))
             # ---- u split (TV)
             tau = ctl.tv / mu_u
@@ -469,13 +479,13 @@ class ADMMSolver:
             for i, part, j, n, a in self._each_slab(("u", "x", "px", "py", "pz") + (("spec",) if tau > 0 else ()),
                                                     ("u",)):
                 prev, pn, hp = self._prev(i, j, "pz")
-                self._red(part, "tv_finish", a["u"].size, RU2, a["u"].data, a["x"].data,
+                self._rows(part, "tv_finish", n, RU2, a["u"].data, a["x"].data,
                           a["spec" if tau > 0 else "x"].data, *grid(a), (prev if hp else a["pz"]).data, I(hp), I(pn),
                           I(self._has_next(i, j)), R(ctl.tv), R(tau), aw, I(n), I(ny), I(nx))
             # ---- the scalars of this iteration: one small read per part, added in float64
             s = np.zeros(NSLOTS)
             for part in self.parts:
-                L = part.local["reduce_partials"]
+                L = part.local
                 part.k["reduce_partials"](part.rt.queue, (NSLOTS * L,), (L,), part.partials.data, part.out.data,
                                           I(part.pstride), kernels.local_memory(L * self.dtype.itemsize))
                 s += part.out.get().astype(np.float64)

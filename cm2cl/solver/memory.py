@@ -45,9 +45,11 @@ def memory_estimate(nz, padded_shape, dtype, backend, scratch_per_plane=0) -> di
     item = np.dtype(dtype).itemsize
     spec_plane = int(np.prod(spectrum_shape((py, px), backend))) * 2 * item
     real_plane = py * px * item
-    # + x spectra + PSF spectra; the reductions' partial sums (18 per work-group of >= 16 items x 64
-    # elements) stay below 1/32 of a real plane
-    per_plane = REAL_VOLUMES * real_plane + 2 * spec_plane + real_plane // 32 + int(scratch_per_plane)
+    # + x spectra + PSF spectra; the reductions' partial sums: 18 per work-item of the row kernels, each
+    # of >= 576 elements (cm2cl/solver/admm.py, ROW_ELEMENTS) but for the rounding to whole blocks of
+    # x and of rows (at most one more per column block and per row block) and for short columns
+    partials = real_plane // 32 + 18 * (py + px + 1) * item
+    per_plane = REAL_VOLUMES * real_plane + 2 * spec_plane + partials + int(scratch_per_plane)
     # planes: v, xi, hx, cty, cw, r and two halos (real); R, S, comp (complex); hn2 (real, spectrum grid)
     fixed = 8 * real_plane + 3 * spec_plane + spec_plane // 2 + 1024 + int(scratch_per_plane)
     return {"per_plane": per_plane, "fixed": fixed, "total": nz * per_plane + fixed,
