@@ -51,44 +51,6 @@ inline real_t group_sum(real_t v, __local real_t *scratch) {
     return r;
 }
 
-/* Forward differences (gx, gy, aw * gz) at element i = (z*ny + y)*nx + x of a slab of `planes`
- * planes, Neumann boundary (zero past the last index); v_next is the next slab of the volume
- * (its first plane is the z+1 neighbour of the last plane) when has_next.  The lateral loads use
- * clamped indices and selects, so the x direction stays vectorisable. */
-inline void grad_at(__global const real_t *v, __global const real_t *v_next, const int has_next,
-                    const size_t i, const int z, const int y, const int x,
-                    const int planes, const int ny, const int nx, const real_t aw,
-                    real_t *gx, real_t *gy, real_t *gz) {
-    const size_t plane = (size_t)ny * nx;
-    const real_t c = v[i];
-    const real_t r = v[i + (size_t)(x < nx - 1)], d = v[i + (size_t)(y < ny - 1) * nx];
-    *gx = (x < nx - 1) ? r - c : (real_t)0;
-    *gy = (y < ny - 1) ? d - c : (real_t)0;
-    *gz = 0;
-    if (z < planes - 1) *gz = aw * (v[i + plane] - c);
-    else if (has_next) *gz = aw * (v_next[i - (size_t)z * plane] - c);
-}
-
-/* div p = -grad^T p at element i (plane z of `planes`) of a slab, p = (px, py, pz) the TV dual: backward
- * differences, p taken as 0 past the last index; pz_prev is the previous slab of pz (its last plane is
- * the z-1 neighbour) when has_prev, and has_next says whether a plane follows the slab's last one. */
-inline real_t div_at(__global const real_t *px, __global const real_t *py, __global const real_t *pz,
-                     __global const real_t *pz_prev, const int has_prev, const int has_next,
-                     const size_t i, const int z, const int y, const int x,
-                     const int planes, const int prev_planes, const int ny, const int nx,
-                     const real_t aw) {
-    const size_t plane = (size_t)ny * nx;
-    /* unconditional loads at clamped indices, then selects: keeps the x direction vectorisable */
-    const real_t pxl = px[i - (size_t)(x > 0)], pyl = py[i - (size_t)(y > 0) * nx];
-    real_t d = (x < nx - 1 ? px[i] : (real_t)0) - (x > 0 ? pxl : (real_t)0);
-    d += (y < ny - 1 ? py[i] : (real_t)0) - (y > 0 ? pyl : (real_t)0);
-    const int last = (z == planes - 1) && !has_next;
-    real_t dz = last ? (real_t)0 : pz[i];
-    if (z > 0) dz -= pz[i - plane];
-    else if (has_prev) dz -= pz_prev[(size_t)(prev_planes - 1) * plane + (i - (size_t)z * plane)];
-    return d + aw * dz;
-}
-
 /* The w split's state (the lean state, cm2cl/solver/admm.py): s = x + rho/mu, the argument of the l1
  * prox at the last w update, with c = l1 l1w[z] and mu the threshold's weight and the penalty of that
  * update.  Then exactly
@@ -218,13 +180,15 @@ inline void add_partials(__global real_t *partials, const int stride, const size
     for (int j = 0; j < k; j++) partials[(size_t)(slot0 + j) * stride + g] += v[j];
 }
 
-/* grad_at for the VW elements at i = (z*ny + y)*nx + x0 (xv: x there) */
+/* Forward differences (gx, gy, aw * gz) of v at the VW elements i.. = (z*ny + y)*nx + x0.. of a slab of
+ * `planes` planes (xv: v there), Neumann boundary (zero past the last index); v_next is the next slab
+ * of the volume (its first plane is the z+1 neighbour of the last plane) when has_next. */
 inline void grad_row(__global const real_t *v, __global const real_t *v_next, const int has_next,
                      const size_t i, const realv xv, const int cnt, const int z, const int y,
                      const int planes, const int ny, const int nx, const real_t aw,
                      realv *gx, realv *gy, realv *gz) {
     const size_t plane = (size_t)ny * nx;
-    /* the row's last element is its own right neighbour (clamped load): gx = 0 there, as in grad_at */
+    /* the row's last element is its own right neighbour (clamped load): gx = 0 there */
     *gx = from_right(xv, v[i + min(VW, cnt - 1)]) - xv;
     *gy = y < ny - 1 ? load_row(v, i + nx, cnt) - xv : (realv)0;
     *gz = 0;
@@ -232,7 +196,10 @@ inline void grad_row(__global const real_t *v, __global const real_t *v_next, co
     else if (has_next) *gz = aw * (load_row(v_next, i - (size_t)z * plane, cnt) - xv);
 }
 
-/* div_at for the VW elements at i = (z*ny + y)*nx + x0 */
+/* div p = -grad^T p at the VW elements i.. = (z*ny + y)*nx + x0.. (plane z of `planes`) of a slab,
+ * p = (px, py, pz) the TV dual: backward differences, p taken as 0 past the last index; pz_prev is the
+ * previous slab of pz (its last plane is the z-1 neighbour) when has_prev, and has_next says whether a
+ * plane follows the slab's last one. */
 inline realv div_row(__global const real_t *px, __global const real_t *py, __global const real_t *pz,
                      __global const real_t *pz_prev, const int has_prev, const int has_next,
                      const size_t i, const int x0, const int cnt, const int z, const int y,

@@ -1,7 +1,7 @@
 /* The TV split of the ADMM: u = prox_{tau TV}(z), z = x + eta/mu_u, tau = lambda_tv/mu_u, by
  * projected-gradient (Chambolle) iterations on the dual p = (px, py, pz), warm-started across
  * outer iterations:  p <- P(p + step grad(div p - z/tau)),  u = z - tau div p.
- * grad: forward differences (Neumann), the axial one weighted by aw; div = -grad^T (div_at, common.cl).
+ * grad: forward differences (Neumann), the axial one weighted by aw; div = -grad^T (grad_row, div_row in common.cl).
  * P: unit ball per voxel (isotropic) or [-1, 1] per component (anisotropic).
  * The dual eta is not stored: eta' = eta + mu_u (x - u') = mu_u tau div p = lambda_tv div p, with p as
  * the last dual iterations left it (eta = 0 while p = 0, at the start and with TV off).
@@ -10,49 +10,59 @@
 
 /* g = div p - z / tau over one slab.  z = x + eta/mu_u = x + tau div p is constant over the dual
  * iterations of one outer iteration: the first (`first`, p still the previous outer iteration's)
- * computes it and stores it in `z`, the later ones read it from there. */
+ * computes it and stores it in `z`, the later ones read it from there.
+ * This and the other kernels of this file are row kernels (common.cl): global size (x blocks, row
+ * blocks, planes), `rows` rows per work-item. */
 __kernel void tv_residual(__global real_t *g,
                           __global const real_t *px, __global const real_t *py, __global const real_t *pz,
                           __global const real_t *pz_prev, const int has_prev, const int prev_planes,
                           const int has_next, __global const real_t *x, __global real_t *z, const int first,
                           const real_t tau, const real_t inv_tau, const real_t aw,
-                          const int planes, const int ny, const int nx) {
-    const int xx = get_global_id(0), y = get_global_id(1), zz = get_global_id(2);
-    if (xx >= nx || y >= ny || zz >= planes) return;
-    const size_t i = ((size_t)zz * ny + y) * nx + xx;
-    const real_t d = div_at(px, py, pz, pz_prev, has_prev, has_next, i, zz, y, xx,
-                            planes, prev_planes, ny, nx, aw);
-    real_t zv;
-    if (first) {
-        zv = x[i] + tau * d;
-        z[i] = zv;
-    } else {
-        zv = z[i];
+                          const int planes, const int ny, const int nx, const int rows) {
+    int x0, cnt, y0, y1, zz;
+    size_t item;
+    if (!row_item(nx, ny, rows, &x0, &cnt, &y0, &y1, &zz, &item)) return;
+    for (int y = y0; y < y1; y++) {
+        const size_t i = ((size_t)zz * ny + y) * nx + x0;
+        const realv d = div_row(px, py, pz, pz_prev, has_prev, has_next, i, x0, cnt, zz, y,
+                                planes, prev_planes, ny, nx, aw);
+        realv zv;
+        if (first) {
+            zv = load_row(x, i, cnt) + tau * d;
+            store_row(zv, z, i, cnt);
+        } else {
+            zv = load_row(z, i, cnt);
+        }
+        store_row(d - zv * inv_tau, g, i, cnt);
     }
-    g[i] = d - zv * inv_tau;
 }
 
 /* p <- P(p + step grad g) over one slab; g_next is the next slab of g when has_next. */
 __kernel void tv_dual_step(__global real_t *px, __global real_t *py, __global real_t *pz,
                            __global const real_t *g, __global const real_t *g_next, const int has_next,
                            const real_t step, const real_t aw, const int iso,
-                           const int planes, const int ny, const int nx) {
-    const int xx = get_global_id(0), y = get_global_id(1), z = get_global_id(2);
-    if (xx >= nx || y >= ny || z >= planes) return;
-    const size_t i = ((size_t)z * ny + y) * nx + xx;
-    real_t gx, gy, gz;
-    grad_at(g, g_next, has_next, i, z, y, xx, planes, ny, nx, aw, &gx, &gy, &gz);
-    real_t a = px[i] + step * gx, b = py[i] + step * gy, d = pz[i] + step * gz;
-    if (iso) {
-        const real_t nrm = fmax((real_t)1, sqrt(a * a + b * b + d * d));
-        const real_t inv = (real_t)1 / nrm;
-        a *= inv; b *= inv; d *= inv;
-    } else {
-        a = clamp(a, (real_t)-1, (real_t)1);
-        b = clamp(b, (real_t)-1, (real_t)1);
-        d = clamp(d, (real_t)-1, (real_t)1);
+                           const int planes, const int ny, const int nx, const int rows) {
+    int x0, cnt, y0, y1, z;
+    size_t item;
+    if (!row_item(nx, ny, rows, &x0, &cnt, &y0, &y1, &z, &item)) return;
+    for (int y = y0; y < y1; y++) {
+        const size_t i = ((size_t)z * ny + y) * nx + x0;
+        realv gx, gy, gz;
+        grad_row(g, g_next, has_next, i, load_row(g, i, cnt), cnt, z, y, planes, ny, nx, aw, &gx, &gy, &gz);
+        realv a = load_row(px, i, cnt) + step * gx, b = load_row(py, i, cnt) + step * gy;
+        realv d = load_row(pz, i, cnt) + step * gz;
+        if (iso) {
+            const realv inv = (real_t)1 / fmax((realv)1, sqrt(a * a + b * b + d * d));
+            a *= inv; b *= inv; d *= inv;
+        } else {
+            a = clamp(a, (real_t)-1, (real_t)1);
+            b = clamp(b, (real_t)-1, (real_t)1);
+            d = clamp(d, (real_t)-1, (real_t)1);
+        }
+        store_row(a, px, i, cnt);
+        store_row(b, py, i, cnt);
+        store_row(d, pz, i, cnt);
     }
-    px[i] = a; py[i] = b; pz[i] = d;
 }
 
 /* u' = z - tau div p and eta' = lambda_tv div p (tau = 0, TV off: u' = x, eta' = 0); z as tv_residual
@@ -94,9 +104,13 @@ __kernel void tv_eta(__global real_t *eta,
                      __global const real_t *px, __global const real_t *py, __global const real_t *pz,
                      __global const real_t *pz_prev, const int has_prev, const int prev_planes,
                      const int has_next, const real_t tv, const real_t aw,
-                     const int planes, const int ny, const int nx) {
-    const int xx = get_global_id(0), y = get_global_id(1), zz = get_global_id(2);
-    if (xx >= nx || y >= ny || zz >= planes) return;
-    const size_t i = ((size_t)zz * ny + y) * nx + xx;
-    eta[i] = tv * div_at(px, py, pz, pz_prev, has_prev, has_next, i, zz, y, xx, planes, prev_planes, ny, nx, aw);
+                     const int planes, const int ny, const int nx, const int rows) {
+    int x0, cnt, y0, y1, zz;
+    size_t item;
+    if (!row_item(nx, ny, rows, &x0, &cnt, &y0, &y1, &zz, &item)) return;
+    for (int y = y0; y < y1; y++) {
+        const size_t i = ((size_t)zz * ny + y) * nx + x0;
+        store_row(tv * div_row(px, py, pz, pz_prev, has_prev, has_next, i, x0, cnt, zz, y,
+                               planes, prev_planes, ny, nx, aw), eta, i, cnt);
+    }
 }

@@ -12,14 +12,19 @@ __kernel void rhs_volume(__global real_t *t, __global const real_t *u, __global 
                          __global const real_t *pz_prev, const int has_prev, const int prev_planes,
                          const int has_next, const real_t mu_u, const real_t mu_w, const real_t tv,
                          const real_t l1_s, __global const real_t *l1w, const real_t mu_s, const real_t aw,
-                         const int planes, const int ny, const int nx) {
-    const int xx = get_global_id(0), y = get_global_id(1), z = get_global_id(2);
-    if (xx >= nx || y >= ny || z >= planes) return;
-    const size_t i = ((size_t)z * ny + y) * nx + xx;
-    const real_t eta = tv > 0 ? tv * div_at(px, py, pz, pz_prev, has_prev, has_next, i, z, y, xx,
-                                             planes, prev_planes, ny, nx, aw) : (real_t)0;
-    const real_t si = s[i], c = l1_s * l1w[z];
-    t[i] = mu_u * u[i] - eta + mu_w * split_w(si, c, mu_s) - split_rho(si, c, mu_s);
+                         const int planes, const int ny, const int nx, const int rows) {
+    /* a row kernel (common.cl) */
+    int x0, cnt, y0, y1, z;
+    size_t item;
+    if (!row_item(nx, ny, rows, &x0, &cnt, &y0, &y1, &z, &item)) return;
+    const real_t c = l1_s * l1w[z];
+    for (int y = y0; y < y1; y++) {
+        const size_t i = ((size_t)z * ny + y) * nx + x0;
+        const realv eta = tv > 0 ? tv * div_row(px, py, pz, pz_prev, has_prev, has_next, i, x0, cnt, z, y,
+                                                planes, prev_planes, ny, nx, aw) : (realv)0;
+        const realv si = load_row(s, i, cnt);
+        store_row(mu_u * load_row(u, i, cnt) - eta + mu_w * split_w(si, c, mu_s) - split_rho(si, c, mu_s), t, i, cnt);
+    }
 }
 
 /* Right-hand side of the v split (one padded plane):  r = mu_v v - xi. */

@@ -60,6 +60,9 @@ PARTIALS = {"CPU": 2**14, "GPU": 2**18}
 #: elements per work-item of the row kernels at least (where the columns are that long): the partials
 #: then take at most 1/32 of the volume they sum (the memory model counts on it)
 ROW_ELEMENTS = NSLOTS * 32
+#: the row kernels (kernels/common.cl), built with the part's VW
+ROW_KERNELS = (("splits.cl", "update_w"), ("splits.cl", "update_v"), ("tv.cl", "tv_finish"), ("tv.cl", "tv_residual"),
+               ("tv.cl", "tv_dual_step"), ("tv.cl", "tv_eta"), ("xstep.cl", "rhs_volume"))
 
 def pixel_weights(weights, shape) -> np.ndarray:
     """The data term's per-pixel weights: ones, or ``weights`` checked (the sensor's shape, finite, >= 0,
@@ -219,11 +222,16 @@ class ADMMSolver:
             cap = PARTIALS.get(part.rt.caps.kind, PARTIALS["GPU"])
             rows = min(ny, max(-(-ROW_ELEMENTS // vw), -(-nxb * ny * part.max_planes // cap)))
         part.vw, part.rows = vw, int(rows)
-        part.k.update({n: kernels.kernel(part.rt, f, n, self.dtype, {"VW": vw})
-                       for f, n in (("splits.cl", "update_w"), ("splits.cl", "update_v"), ("tv.cl", "tv_finish"))})
+        part.k.update({n: kernels.kernel(part.rt, f, n, self.dtype, {"VW": vw}) for f, n in ROW_KERNELS})
         part.local = kernels.work_group_size(part.rt, part.k["reduce_partials"])
         part.pstride = nxb * -(-ny // part.rows) * part.max_planes   # one partial per work-item and sum
         part.partials = part.rt.zeros(NSLOTS * part.pstride, self.dtype)
+
+    def _row_grid(self, part, name, planes, *args):
+        """Launch a row kernel without sums over ``planes`` planes (``args``: those before ``rows``), a row
+        per work-item: on GPUs (VW = 1) a work-item per element."""
+        ny, nx = self.P
+        kernels.launch(part.rt, part.k[name], (-(-nx // part.vw), ny, int(planes)), *args, np.int32(1))
 
     def _rows(self, part, name, planes, slot, *args):
         """Launch a fused update + reduction (a row kernel) over ``planes`` planes; its sums go to the
@@ -279,7 +287,7 @@ class ADMMSolver:
         for i, part, j, n, a in self._each_slab(("u", "s", "px", "py", "pz", "hs"), ("spec",), ("g",)):
             pl = part.planes
             prev, pn, hp = self._prev(i, j, "pz")
-            self._grid(part, "rhs_volume", n, a["g"].data, a["u"].data, a["s"].data, a["px"].data, a["py"].data,
+            self._row_grid(part, "rhs_volume", n, a["g"].data, a["u"].data, a["s"].data, a["px"].data, a["py"].data,
                        a["pz"].data, (prev if hp else a["pz"]).data, I(hp), I(pn), I(self._has_next(i, j)),
                        R(mu_u), R(mu_w), R(self.tv_split), R(l1_s), part.l1w[j].data, R(mu_s), aw,
                        I(n), I(ny), I(nx))
@@ -341,7 +349,7 @@ class ADMMSolver:
             t = part.rt.zeros(a["s"].shape, self.dtype)
             if name == "eta":
                 prev, pn, hp = self._prev(i, j, "pz")
-                self._grid(part, "tv_eta", n, t.data, a["px"].data, a["py"].data, a["pz"].data,
+                self._row_grid(part, "tv_eta", n, t.data, a["px"].data, a["py"].data, a["pz"].data,
                            (prev if hp else a["pz"]).data, I(hp), I(pn), I(self._has_next(i, j)),
                            R(self.tv_split), R(self.p.tv_axial_weight), I(n), I(ny), I(nx))
             else:
@@ -470,11 +478,11 @@ class ADMMSolver:
                     writes = ("px", "py", "pz") + (("spec",) if first else ())
                     for i, part, j, n, a in self._each_slab(reads, writes, edges=("g",), reverse=True):
                         prev, pn, hp = self._prev(i, j, "pz")
-                        self._grid(part, "tv_residual", n, a["g"].data, *grid(a), (prev if hp else a["pz"]).data,
+                        self._row_grid(part, "tv_residual", n, a["g"].data, *grid(a), (prev if hp else a["pz"]).data,
                                    I(hp), I(pn), I(self._has_next(i, j)), a["x" if first else "spec"].data,
                                    a["spec"].data, I(first), R(tau), R(1.0 / tau), aw, I(n), I(ny), I(nx))
                         gn, hn = self._next(i, j, "g")
-                        self._grid(part, "tv_dual_step", n, *grid(a), a["g"].data, (gn if hn else a["g"]).data,
+                        self._row_grid(part, "tv_dual_step", n, *grid(a), a["g"].data, (gn if hn else a["g"]).data,
                                    I(hn), step, aw, iso, I(n), I(ny), I(nx))
             for i, part, j, n, a in self._each_slab(("u", "x", "px", "py", "pz") + (("spec",) if tau > 0 else ()),
                                                     ("u",)):
