@@ -215,3 +215,58 @@ inline realv div_row(__global const real_t *px, __global const real_t *py, __glo
     else if (has_prev) dz -= load_row(pz_prev, (size_t)(prev_planes - 1) * plane + (i - (size_t)z * plane), cnt);
     return d + aw * dz;
 }
+
+/* ---- Complex row vectors: CW = max(VW/2, 1) neighbouring complex values per work-item -------------
+ * (the spectral kernels of xstep.cl): stored as 2 CW reals (re, im, re, im, ...), computed on as
+ * their real parts and imaginary parts (chalf_t: CW reals each), so that a CPU work-item's
+ * arithmetic runs on SIMD vectors. `cnt`: the complex values from p[k] on that are real (>= 1). */
+#if VW == 1
+#define CW 1
+typedef cplx_t cvec_t;
+typedef real_t chalf_t;
+inline cvec_t cjoin(const chalf_t re, const chalf_t im) { return (cvec_t)(re, im); }
+#elif VW == 4
+#define CW 2
+typedef CAT(REAL, 4) cvec_t;
+typedef CAT(REAL, 2) chalf_t;
+inline cvec_t cjoin(const chalf_t re, const chalf_t im) { return (cvec_t)(re.s0, im.s0, re.s1, im.s1); }
+#else
+#define CW 4
+typedef CAT(REAL, 8) cvec_t;
+typedef CAT(REAL, 4) chalf_t;
+inline cvec_t cjoin(const chalf_t re, const chalf_t im) {
+    return (cvec_t)(re.s0, im.s0, re.s1, im.s1, re.s2, im.s2, re.s3, im.s3);
+}
+#endif
+
+inline void cload(__global const cplx_t *p, const size_t k, const size_t cnt, chalf_t *re, chalf_t *im) {
+    cvec_t v;
+#if CW == 1
+    v = p[k];
+#else
+    if (cnt >= CW) {
+        v = CAT(vload, VW)(0, (__global const real_t *)(p + k));
+    } else {
+        cplx_t t[CW];
+        for (int q = 0; q < CW; q++) t[q] = p[k + min((size_t)q, cnt - 1)];
+        v = CAT(vload, VW)(0, (const real_t *)t);
+    }
+#endif
+    *re = v.even;
+    *im = v.odd;
+}
+
+inline void cstore(const chalf_t re, const chalf_t im, __global cplx_t *p, const size_t k, const size_t cnt) {
+    const cvec_t v = cjoin(re, im);
+#if CW == 1
+    p[k] = v;
+#else
+    if (cnt >= CW) {
+        CAT(vstore, VW)(v, 0, (__global real_t *)(p + k));
+    } else {
+        cplx_t t[CW];
+        CAT(vstore, VW)(v, 0, (real_t *)t);
+        for (size_t q = 0; q < cnt; q++) p[k + q] = t[q];
+    }
+#endif
+}

@@ -34,24 +34,37 @@ __kernel void rhs_plane(__global real_t *r, __global const real_t *v, __global c
     if (i < n) r[i] = mu_v * v[i] - xi[i];
 }
 
-/* B_i = conj(H_i) R + T_i, written over T;  S (+)= sum_i H_i B_i (Kahan, carried in comp). */
+/* B_i = conj(H_i) R + T_i, written over T;  S (+)= sum_i H_i B_i (Kahan, carried in comp).
+ * CW frequencies per work-item (complex row vectors, common.cl): global size ceil(nfreq / CW). */
 __kernel void xstep_accumulate(__global cplx_t *T, __global const cplx_t *H, __global const cplx_t *R,
                                __global cplx_t *S, __global cplx_t *comp,
                                const int planes, const ulong nfreq, const int first) {
-    const size_t k = get_global_id(0);
+    const size_t k = get_global_id(0) * CW;
     if (k >= nfreq) return;
-    const cplx_t r = R[k];
-    cplx_t s = (cplx_t)(0, 0), c = (cplx_t)(0, 0);
-    if (!first) { s = S[k]; c = comp[k]; }
+    const size_t cnt = nfreq - k;
+    chalf_t rr, ri, sr = 0, si = 0, cr = 0, ci = 0;
+    cload(R, k, cnt, &rr, &ri);
+    if (!first) {
+        cload(S, k, cnt, &sr, &si);
+        cload(comp, k, cnt, &cr, &ci);
+    }
     for (int i = 0; i < planes; ++i) {
         const size_t j = (size_t)i * nfreq + k;
-        const cplx_t h = H[j];
-        const cplx_t b = cmulc(h, r) + T[j];
-        T[j] = b;
-        kahan_add2(&s, &c, cmul(h, b));
+        chalf_t hr, hi, tr, ti;
+        cload(H, j, cnt, &hr, &hi);
+        cload(T, j, cnt, &tr, &ti);
+        const chalf_t br = (hr * rr + hi * ri) + tr, bi = (hr * ri - hi * rr) + ti;   /* cmulc(h, r) + t */
+        cstore(br, bi, T, j, cnt);
+        /* Kahan: s += h * b (cmul), carried in c (kahan_add2) */
+        const chalf_t yr = (hr * br - hi * bi) - cr, yi = (hr * bi + hi * br) - ci;
+        const chalf_t ur = sr + yr, ui = si + yi;
+        cr = (ur - sr) - yr;
+        ci = (ui - si) - yi;
+        sr = ur;
+        si = ui;
     }
-    S[k] = s;
-    comp[k] = c;
+    cstore(sr, si, S, k, cnt);
+    cstore(cr, ci, comp, k, cnt);
 }
 
 /* HX = S / (c + mu_v hn2), in place over S. */
@@ -61,15 +74,22 @@ __kernel void xstep_hx(__global cplx_t *S, __global const real_t *hn2,
     if (k < nfreq) S[k] = S[k] / (c + mu_v * hn2[k]);
 }
 
-/* X_i = (B_i - mu_v conj(H_i) HX) / c, in place over B. */
+/* X_i = (B_i - mu_v conj(H_i) HX) / c, in place over B; CW frequencies per work-item (as
+ * xstep_accumulate). */
 __kernel void xstep_solve(__global cplx_t *B, __global const cplx_t *H, __global const cplx_t *HX,
                           const real_t c, const real_t mu_v, const int planes, const ulong nfreq) {
-    const size_t k = get_global_id(0);
+    const size_t k = get_global_id(0) * CW;
     if (k >= nfreq) return;
-    const cplx_t hx = HX[k];
+    const size_t cnt = nfreq - k;
+    chalf_t xr, xi;
+    cload(HX, k, cnt, &xr, &xi);
     const real_t inv_c = (real_t)1 / c;
     for (int i = 0; i < planes; ++i) {
         const size_t j = (size_t)i * nfreq + k;
-        B[j] = (B[j] - mu_v * cmulc(H[j], hx)) * inv_c;
+        chalf_t hr, hi, br, bi;
+        cload(H, j, cnt, &hr, &hi);
+        cload(B, j, cnt, &br, &bi);
+        /* (b - mu_v cmulc(h, hx)) * inv_c */
+        cstore((br - mu_v * (hr * xr + hi * xi)) * inv_c, (bi - mu_v * (hr * xi - hi * xr)) * inv_c, B, j, cnt);
     }
 }

@@ -193,25 +193,27 @@ def test_bad_inputs(rt, monkeypatch):
         reconstruct(y32, psf32, padded_shape=(64, 80))
 
 
+@pytest.mark.parametrize("P", [(64, 90), (63, 84)])
 @pytest.mark.parametrize("dtype,vw,rows", [(np.float32, 1, None), (np.float32, None, 5), (np.float32, None, None),
                                            (np.float64, None, 5), (np.float64, 1, 7)])
-def test_row_kernel_layouts_match_the_reference(rt, dtype, vw, rows):
-    """The fused update-and-reduce kernels (update_w, update_v, tv_finish) run VW neighbouring x per
-    work-item (the device's width when None: 8 float32 / 4 float64 on CPUs, 1 on GPUs) over `rows`
-    rows; a padded width of 90 leaves a partial vector at every row's end (90 = 11*8 + 2 = 22*4 + 2) and
-    5 or 7 rows leave a partial block of rows (64 = 12*5 + 4 = 9*7 + 1). Every layout, on whatever
-    device this is, against the float64 reference."""
+def test_row_kernel_layouts_match_the_reference(rt, dtype, vw, rows, P):
+    """The row kernels (kernels/common.cl) run VW neighbouring x per work-item (the device's width when
+    None: 8 float32 / 4 float64 on CPUs, 1 on GPUs) over `rows` rows, and the spectral ones CW = VW/2
+    frequencies. A padded width of 90 leaves a partial vector at every row's end (90 = 11*8 + 2 =
+    22*4 + 2), 5 or 7 rows a partial block of rows (64 = 12*5 + 4 = 9*7 + 1, 63 = 12*5 + 3), and
+    63 x 84 a partial vector of frequencies (63 * 43 = 2709 = 677*4 + 1 = 1354*2 + 1). Every layout, on
+    whatever device this is, against the float64 reference."""
     if dtype == np.float64 and not rt.caps.fp64:
         pytest.skip(f"device '{rt.caps.name}' has no fp64 support")
     psf, _, y = bead_problem(8)
     kw = dict(l1=1e-3, tv=1e-3, max_iter=12, tol=0)
-    s = ADMMSolver(psf.astype(dtype), ADMMParams(**kw), dtype=dtype, padded_shape=(64, 90), max_slab_planes=3)
+    s = ADMMSolver(psf.astype(dtype), ADMMParams(**kw), dtype=dtype, padded_shape=P, max_slab_planes=3)
     for part in s.parts:
         s._row_layout(part, vw or part.vw, rows)
         assert (part.vw, part.rows) == (vw or (32 // np.dtype(dtype).itemsize if rt.caps.kind == "CPU" else 1),
                                         rows or part.rows)
     r1 = s.solve(y.astype(dtype))
-    r0 = ref.admm(y, psf, padded_shape=(64, 90), **kw)
+    r0 = ref.admm(y, psf, padded_shape=P, **kw)
     err = np.linalg.norm(r1.volume_padded - r0.volume_padded) / np.linalg.norm(r0.volume_padded)
     if dtype == np.float32:
         np.testing.assert_allclose(r1.log_array("objective"), r0.log_array("objective"), rtol=1e-5)

@@ -62,7 +62,8 @@ PARTIALS = {"CPU": 2**14, "GPU": 2**18}
 ROW_ELEMENTS = NSLOTS * 32
 #: the row kernels (kernels/common.cl), built with the part's VW
 ROW_KERNELS = (("splits.cl", "update_w"), ("splits.cl", "update_v"), ("tv.cl", "tv_finish"), ("tv.cl", "tv_residual"),
-               ("tv.cl", "tv_dual_step"), ("tv.cl", "tv_eta"), ("xstep.cl", "rhs_volume"))
+               ("tv.cl", "tv_dual_step"), ("tv.cl", "tv_eta"), ("xstep.cl", "rhs_volume"),
+               ("xstep.cl", "xstep_accumulate"), ("xstep.cl", "xstep_solve"))
 
 def pixel_weights(weights, shape) -> np.ndarray:
     """The data term's per-pixel weights: ones, or ``weights`` checked (the sensor's shape, finite, >= 0,
@@ -222,6 +223,7 @@ class ADMMSolver:
             cap = PARTIALS.get(part.rt.caps.kind, PARTIALS["GPU"])
             rows = min(ny, max(-(-ROW_ELEMENTS // vw), -(-nxb * ny * part.max_planes // cap)))
         part.vw, part.rows = vw, int(rows)
+        part.cw = max(vw // 2, 1)   # complex values per work-item of xstep_accumulate, xstep_solve
         part.k.update({n: kernels.kernel(part.rt, f, n, self.dtype, {"VW": vw}) for f, n in ROW_KERNELS})
         part.local = kernels.work_group_size(part.rt, part.k["reduce_partials"])
         part.pstride = nxb * -(-ny // part.rows) * part.max_planes   # one partial per work-item and sum
@@ -292,7 +294,7 @@ class ADMMSolver:
                        R(mu_u), R(mu_w), R(self.tv_split), R(l1_s), part.l1w[j].data, R(mu_s), aw,
                        I(n), I(ny), I(nx))
             part.plan(n, self.backend).forward(a["g"], a["spec"])
-            self._ew(part, "xstep_accumulate", self.nfreq, a["spec"].data, a["hs"].data, pl["R"].data,
+            self._ew(part, "xstep_accumulate", -(-self.nfreq // part.cw), a["spec"].data, a["hs"].data, pl["R"].data,
                      pl["S"].data, pl["comp"].data, I(n), nf, I(j == 0))
         if len(self.parts) > 1:   # the spectral sum over all planes, added in float64 (Kahan: sum - comp)
             S = np.sum([p.planes["S"].get().astype(np.complex128) - p.planes["comp"].get() for p in self.parts],
@@ -303,7 +305,7 @@ class ADMMSolver:
             self._ew(part, "xstep_hx", self.nfreq, part.planes["S"].data, part.planes["hn2"].data, R(c),
                      R(mu_v), nf)
         for i, part, j, n, a in self._each_slab(("spec", "hs"), ("g",)):
-            self._ew(part, "xstep_solve", self.nfreq, a["spec"].data, a["hs"].data, part.planes["S"].data,
+            self._ew(part, "xstep_solve", -(-self.nfreq // part.cw), a["spec"].data, a["hs"].data, part.planes["S"].data,
                      R(c), R(mu_v), I(n), nf)
             part.plan(n, self.backend).inverse(a["spec"], a["g"])
         self.parts[0].plan2d.inverse(p0["S"], p0["hx"])
