@@ -27,21 +27,29 @@
 #if FFT_VEC == 1
 typedef cplx_t fc_t;
 #define FC_WIDTH 2
+#define FC_RE(a) ((fc_t)((a).x))
+#define FC_IM(a) ((fc_t)((a).y))
 #define FC_SWAP(a) (a).yx
 #define FC_SIGN ((fc_t)(1, -1))
 #elif FFT_VEC == 2
 typedef CAT(REAL, 4) fc_t;
 #define FC_WIDTH 4
+#define FC_RE(a) (a).s0022
+#define FC_IM(a) (a).s1133
 #define FC_SWAP(a) (a).s1032
 #define FC_SIGN ((fc_t)(1, -1, 1, -1))
 #elif FFT_VEC == 4
 typedef CAT(REAL, 8) fc_t;
 #define FC_WIDTH 8
+#define FC_RE(a) (a).s00224466
+#define FC_IM(a) (a).s11335577
 #define FC_SWAP(a) (a).s10325476
 #define FC_SIGN ((fc_t)(1, -1, 1, -1, 1, -1, 1, -1))
 #elif FFT_VEC == 8
 typedef CAT(REAL, 16) fc_t;
 #define FC_WIDTH 16
+#define FC_RE(a) (a).s0022446688aaccee
+#define FC_IM(a) (a).s1133557799bbddff
 #define FC_SWAP(a) (a).s1032547698badcfe
 #define FC_SIGN ((fc_t)(1, -1, 1, -1, 1, -1, 1, -1, 1, -1, 1, -1, 1, -1, 1, -1))
 #else
@@ -54,6 +62,8 @@ typedef union { fc_t v; cplx_t c[FFT_VEC]; } fc_parts;
 inline cplx_t mul_mi(cplx_t a) { return (cplx_t)(a.y, -a.x); }  /* -i a */
 inline fc_t vmul_mi(fc_t a) { return FC_SWAP(a) * FC_SIGN; }      /* -i a, each value */
 inline fc_t vconj(fc_t a) { return a * FC_SIGN; }
+/* conj(h) x, each value (FC_RE, FC_IM: each value's real or imaginary part in both of its places) */
+inline fc_t vmulc(fc_t h, fc_t x) { return FC_RE(h) * x + FC_IM(h) * vmul_mi(x); }
 /* each value times the complex w: (x c - y s, y c + x s), the operations of cmul */
 inline fc_t vmul_tw(fc_t a, cplx_t w) { return a * w.x - vmul_mi(a) * w.y; }
 
@@ -317,9 +327,14 @@ __kernel void rows_c2r(__global real_t *dst, __global const cplx_t *src,
  * FFT_VEC neighbouring columns together, FFT_C such work-items per group in local dimension 0
  * (neighbouring work-items on neighbouring columns: coalesced global reads and writes); local
  * dimension 1 walks the butterflies.  conj_io != 0 conjugates on load and store (the inverse,
- * unnormalised). */
+ * unnormalised).  With FFT_XSTEP (the inverse only) the data are the x step's B_i and the kernel
+ * applies that step's last stage to them as it loads them. */
 __kernel void cols(__global cplx_t *data, const int w, const int conj_io,
-                   __global const cplx_t *tw) {
+                   __global const cplx_t *tw
+#ifdef FFT_XSTEP
+                   , __global const cplx_t *hs, __global const cplx_t *hx, const real_t mu_v, const real_t inv_c
+#endif
+                   ) {
     __local fc_t a_[FFT_N * FFT_C], b_[FFT_N * FFT_C];
     const int c = get_local_id(0), col = (get_group_id(0) * FFT_C + c) * FFT_VEC;
     const int j0 = get_local_id(1), js = get_local_size(1);
@@ -335,6 +350,20 @@ __kernel void cols(__global cplx_t *data, const int w, const int conj_io,
         } else {
             for (int q = 0; q < FFT_VEC; ++q) u.c[q] = (col + q < w) ? pi[q] : (cplx_t)(0, 0);
         }
+#ifdef FFT_XSTEP
+        {   /* the x step's last stage on the way in (xstep_solve in xstep.cl, fused):
+               X_i = (B_i - mu_v conj(H_i) HX) * inv_c, H_i: hs at B's place, HX: hx's plane (py, w) */
+            __global const cplx_t *hi = hs + (pi - data), *xi = hx + (size_t)i * w + min(col, w - 1);
+            if (full) {
+                const fc_t h = CAT(vload, FC_WIDTH)(0, (__global const real_t *)hi);
+                const fc_t x = CAT(vload, FC_WIDTH)(0, (__global const real_t *)xi);
+                u.v = (u.v - mu_v * vmulc(h, x)) * inv_c;
+            } else {
+                for (int q = 0; q < FFT_VEC; ++q)
+                    if (col + q < w) u.c[q] = (u.c[q] - mu_v * cmulc(hi[q], xi[q])) * inv_c;
+            }
+        }
+#endif
         a[i * FFT_C] = u.v * sign;
     }
     barrier(CLK_LOCAL_MEM_FENCE);

@@ -147,6 +147,21 @@ class FFTPlan:
             self._fft(dst, dst, inverse=0)
         return dst
 
+    @property
+    def fuses_xstep(self) -> bool:
+        """Whether :meth:`inverse_xstep` is available: cm2cl's own FFT with its column lines in local
+        memory (cm2cl.device.fft_kernels.ClPlan.inverse_xstep)."""
+        return self.backend == "cl" and self._cl.fuses_xstep
+
+    def inverse_xstep(self, src, dst, hs, hx, c, mu_v):
+        """dst (real) <- IFFT((src - mu_v conj(hs) hx) / c), normalised: the x step's last stage fused
+        into the inverse (only where :attr:`fuses_xstep`); src is overwritten."""
+        self._check(src, self.spec_shape, self.cdtype, "ifft input")
+        self._check(hs, self.spec_shape, self.cdtype, "PSF spectra")
+        self._check(dst, self.real_shape, self.dtype, "ifft output")
+        self._cl.inverse_xstep(src, dst, hs, hx, c, mu_v)
+        return dst
+
     def inverse(self, src, dst):
         """dst (real) <- IFFT(src (spectrum)), normalised; src may be overwritten."""
         self._check(src, self.spec_shape, self.cdtype, "ifft input")

@@ -162,6 +162,8 @@ class ClPlan:
         self.cols_local = cols is not None
         if cols:
             (self._k_cols,), self.col_c, self.col_t, self.col_v = cols
+            self._col_defs = _line_defines(py) | {"FFT_C": self.col_c, "FFT_VEC": self.col_v}
+        self._k_cols_x = None
         if not (self.rows_local and self.cols_local):
             self._pack = {name: kernels.kernel(rt, "fft.cl", name, self.dtype)
                           for name in ("pack_real", "untangle", "tangle", "unpack_real")}
@@ -255,6 +257,26 @@ class ClPlan:
             self._cl.enqueue_copy(self.rt.queue, spec.data, a, byte_count=spec.nbytes)
 
     # ---- the transforms -------------------------------------------------------------------------
+    @property
+    def fuses_xstep(self) -> bool:
+        """Whether :meth:`inverse_xstep` runs the x step's last stage inside the column pass (lines in
+        local memory); otherwise the solver runs xstep_solve before :meth:`inverse`."""
+        return self.cols_local
+
+    def inverse_xstep(self, src, dst, hs, hx, c, mu_v):
+        """:meth:`inverse` of X_i = (B_i - mu_v conj(H_i) HX) / c for B = src (batch planes, overwritten),
+        H = hs (same shape), HX = hx (one spectrum plane): kernels/xstep.cl's xstep_solve, fused into
+        the column pass's loads (one read and one write of the spectra fewer)."""
+        if not self.fuses_xstep:
+            raise ValueError("inverse_xstep needs the column lines in local memory (fuses_xstep)")
+        if self._k_cols_x is None:
+            self._k_cols_x = kernels.kernel(self.rt, "fft.cl", "cols", self.dtype, self._col_defs | {"FFT_XSTEP": 1})
+        R = self.dtype.type
+        g = (-(-self.w // (self.col_c * self.col_v)) * self.col_c, self.col_t, self.batch)
+        self._k_cols_x(self.rt.queue, g, (self.col_c, self.col_t, 1), src.data, np.int32(self.w), np.int32(1),
+                       self.tw_col.data, hs.data, hx.data, R(mu_v), R(1.0 / c))
+        return self._rows_inverse(src, dst)
+
     def forward(self, src, dst):
         """dst (batch, py, px//2+1) complex <- 2D FFT of src (batch, py, px) real."""
         lines = self.batch * self.py
@@ -275,6 +297,10 @@ class ClPlan:
     def inverse(self, src, dst):
         """dst (batch, py, px) real <- normalised inverse 2D FFT of src (overwritten)."""
         self._cols(src, True)
+        return self._rows_inverse(src, dst)
+
+    def _rows_inverse(self, src, dst):
+        """The row pass of :meth:`inverse` (columns done)."""
         lines = self.batch * self.py
         scale = self.dtype.type(1.0 / (self.nrow * self.py))
         if self.rows_local:

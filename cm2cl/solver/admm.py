@@ -204,6 +204,9 @@ class ADMMSolver:
         self.l1_split = (0.0, 1.0)
         #: the TV weight the dual p belongs to: eta = tv_split div p
         self.tv_split = 0.0
+        #: run xstep_solve inside the inverse FFT's column pass where the FFT allows it (off: for tests
+        #: and benchmarks of the unfused path)
+        self.fuse_xstep = True
 
     # ---- launch helpers --------------------------------------------------------------------
     def _ew(self, part, name, n, *args):
@@ -305,9 +308,13 @@ class ADMMSolver:
             self._ew(part, "xstep_hx", self.nfreq, part.planes["S"].data, part.planes["hn2"].data, R(c),
                      R(mu_v), nf)
         for i, part, j, n, a in self._each_slab(("spec", "hs"), ("g",)):
+            plan = part.plan(n, self.backend)
+            if plan.fuses_xstep and self.fuse_xstep:
+                plan.inverse_xstep(a["spec"], a["g"], a["hs"], part.planes["S"], c, mu_v)
+                continue
             self._ew(part, "xstep_solve", -(-self.nfreq // part.cw), a["spec"].data, a["hs"].data, part.planes["S"].data,
                      R(c), R(mu_v), I(n), nf)
-            part.plan(n, self.backend).inverse(a["spec"], a["g"])
+            plan.inverse(a["spec"], a["g"])
         self.parts[0].plan2d.inverse(p0["S"], p0["hx"])
 
     def w_step(self, l1, mu_w):
