@@ -10,7 +10,8 @@ S: one spectrum volume; the lean state of cm2cl/solver/admm.py):
     tv_residual 6V the first time (x, p in; r, z out), 5V after (z, p in; r out)
     tv_dual_step 7V (p, r in; p out)                   tv_finish 7V (u, x, z, p in; u out)
     xstep_accumulate 3S (spectra, PSF spectra in; out) xstep_solve 3S (spectra, PSF spectra in; out)
-    FFT kernels of cm2cl's own backend: rows_r2c V + S, cols 2S, rows_c2r S + V
+    FFT kernels of cm2cl's own backend: rows_r2c V + S, cols 2S, rows_c2r S + V; where xstep_solve runs
+    inside the inverse's column pass (ADMMSolver.fuse_xstep), that pass also reads the PSF spectra (+S)
 
 Writes a section of docs/benchmarks.md.
 
@@ -87,6 +88,7 @@ def measure(size: str, iters: int, backend: str, bw: float):
     V = nz * s.P[0] * s.P[1] * s.dtype.itemsize
     S = nz * int(np.prod(s.parts[0].spec_plane)) * 2 * s.dtype.itemsize
     model = bytes_model(p.tv_iters)
+    fused = s.fuse_xstep and all(part.plan(b - a, s.backend).fuses_xstep for part in s.parts for a, b in part.bounds)
     rows, total = [], 0.0
     for name in sorted(kt.seconds, key=lambda n: -kt.seconds[n]):
         sec = kt.seconds[name] / iters
@@ -94,6 +96,8 @@ def measure(size: str, iters: int, backend: str, bw: float):
         calls = kt.calls[name] / iters
         if name in model:
             nbytes = (model[name][0] * V + model[name][1] * S) * calls
+            if name == "cols" and fused:
+                nbytes += S
             rate = nbytes / sec
             rows.append([name, f"{calls:g}", f"{sec * 1e3:.1f}", f"{nbytes / 1e6:.0f}", f"{rate / 1e9:.1f}",
                          f"{rate / bw:.2f}"])
