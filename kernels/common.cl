@@ -61,9 +61,12 @@ inline real_t group_sum(real_t v, __local real_t *scratch) {
 #define split_rho(s, c, mu) fmin((mu) * (s), (c))
 /* (s, c, mu: reals or realv vectors alike) */
 
-/* ---- Row kernels: the fused update-and-reduce kernels (update_w, update_v, tv_finish) ----------------
- * A work-item handles VW neighbouring x of `rows` rows of one plane, as vectors of VW reals, and adds
- * its sums into one partial per sum (reduce_partials adds those up): no barriers, no local memory.
+/* ---- Row kernels: the volume kernels of the iteration (stencils and update-and-reduce) ------------
+ * A work-item handles VW neighbouring x as one vector, for a block of `rows` rows, and for each row
+ * walks all planes of the slab: values of a plane that the next plane's differences need again (the
+ * axial neighbour) are carried in registers, so each volume is read once. The reducing kernels add
+ * their sums into one partial per work-item (reduce_partials adds those up): no barriers, no local
+ * memory. Global size (x blocks, row blocks).
  * VW is a build define (cm2cl/device/kernels.py): 32 bytes of reals on CPUs, where PoCL compiles a
  * work-item's vector code to SIMD instructions (work-items with loops or barriers stay scalar, 5x
  * slower: docs/benchmarks.md), and 1 on GPUs, where neighbouring work-items read neighbouring x.
@@ -158,19 +161,18 @@ inline real_t lanes_sum(const realv v) {
 #endif
 }
 
-/* The work-item's place: x0 (first x), cnt (real lanes), rows [y0, y1) of plane z, and its partial
- * index g; returns 0 for the work-items past the last x block (the launch pads dimension 0). */
+/* The work-item's place: x0 (first x), cnt (real lanes), rows [y0, y1), and its partial index g;
+ * returns 0 for the work-items past the last x block (the launch pads dimension 0). */
 inline int row_item(const int nx, const int ny, const int rows,
-                    int *x0, int *cnt, int *y0, int *y1, int *z, size_t *g) {
-    const int nxb = (nx + VW - 1) / VW, nyb = (ny + rows - 1) / rows;
+                    int *x0, int *cnt, int *y0, int *y1, size_t *g) {
+    const int nxb = (nx + VW - 1) / VW;
     const int xb = get_global_id(0), yb = get_global_id(1);
     if (xb >= nxb) return 0;
-    *z = get_global_id(2);
     *x0 = xb * VW;
     *cnt = nx - *x0;
     *y0 = yb * rows;
     *y1 = min(ny, *y0 + rows);
-    *g = (size_t)xb + (size_t)nxb * ((size_t)yb + (size_t)nyb * (size_t)*z);
+    *g = (size_t)xb + (size_t)nxb * (size_t)yb;
     return 1;
 }
 
@@ -180,40 +182,44 @@ inline void add_partials(__global real_t *partials, const int stride, const size
     for (int j = 0; j < k; j++) partials[(size_t)(slot0 + j) * stride + g] += v[j];
 }
 
-/* Forward differences (gx, gy, aw * gz) of v at the VW elements i.. = (z*ny + y)*nx + x0.. of a slab of
- * `planes` planes (xv: v there), Neumann boundary (zero past the last index); v_next is the next slab
- * of the volume (its first plane is the z+1 neighbour of the last plane) when has_next. */
-inline void grad_row(__global const real_t *v, __global const real_t *v_next, const int has_next,
-                     const size_t i, const realv xv, const int cnt, const int z, const int y,
-                     const int planes, const int ny, const int nx, const real_t aw,
-                     realv *gx, realv *gy, realv *gz) {
-    const size_t plane = (size_t)ny * nx;
+/* Forward differences of v at the VW elements i.. = (z*ny + y)*nx + x0.. of a slab (vc: v there),
+ * Neumann boundary (zero past the last index): the lateral ones here, the axial one
+ * aw (next_plane(...) - vc) by the caller, who carries the next plane to the next step. */
+inline void grad_xy(__global const real_t *v, const size_t i, const realv vc, const int cnt, const int y,
+                    const int ny, const int nx, realv *gx, realv *gy) {
     /* the row's last element is its own right neighbour (clamped load): gx = 0 there */
-    *gx = from_right(xv, v[i + min(VW, cnt - 1)]) - xv;
-    *gy = y < ny - 1 ? load_row(v, i + nx, cnt) - xv : (realv)0;
-    *gz = 0;
-    if (z < planes - 1) *gz = aw * (load_row(v, i + plane, cnt) - xv);
-    else if (has_next) *gz = aw * (load_row(v_next, i - (size_t)z * plane, cnt) - xv);
+    *gx = from_right(vc, v[i + min(VW, cnt - 1)]) - vc;
+    *gy = y < ny - 1 ? load_row(v, i + nx, cnt) - vc : (realv)0;
 }
 
-/* div p = -grad^T p at the VW elements i.. = (z*ny + y)*nx + x0.. (plane z of `planes`) of a slab,
- * p = (px, py, pz) the TV dual: backward differences, p taken as 0 past the last index; pz_prev is the
- * previous slab of pz (its last plane is the z-1 neighbour) when has_prev, and has_next says whether a
- * plane follows the slab's last one. */
-inline realv div_row(__global const real_t *px, __global const real_t *py, __global const real_t *pz,
-                     __global const real_t *pz_prev, const int has_prev, const int has_next,
-                     const size_t i, const int x0, const int cnt, const int z, const int y,
-                     const int planes, const int prev_planes, const int ny, const int nx,
-                     const real_t aw) {
-    const size_t plane = (size_t)ny * nx;
+/* v's plane z+1 at the elements i.. of plane z of a slab of `planes` planes: from the slab, from
+ * v_next (the next slab, when has_next) after its last plane, else vc (no axial difference). */
+inline realv next_plane(__global const real_t *v, __global const real_t *v_next, const int has_next,
+                        const size_t i, const size_t plane, const int z, const int planes, const int cnt,
+                        const realv vc) {
+    if (z < planes - 1) return load_row(v, i + plane, cnt);
+    if (has_next) return load_row(v_next, i - (size_t)z * plane, cnt);
+    return vc;
+}
+
+/* div p = -grad^T p, p = (px, py, pz) the TV dual: backward differences, p taken as 0 past the last
+ * index. The lateral part at the VW elements i.. of row y here; the axial part by the caller:
+ * aw ((last ? 0 : pz) - pz of the plane before), carrying pz to the next plane, with the plane
+ * before the slab's first from plane_before (pz_prev: the previous slab, when has_prev; its last
+ * plane is the z-1 neighbour), `last` the slab's last plane when no plane follows it (has_next). */
+inline realv div_xy(__global const real_t *px, __global const real_t *py, const size_t i, const int x0,
+                    const int cnt, const int y, const int ny, const int nx) {
     const realv pxv = load_row(px, i, cnt);
     realv d = lanes_below(pxv, cnt - 1) - from_left(x0 > 0 ? px[i - 1] : (real_t)0, pxv);
     if (y < ny - 1) d += load_row(py, i, cnt);
     if (y > 0) d -= load_row(py, i - nx, cnt);
-    realv dz = (z == planes - 1 && !has_next) ? (realv)0 : load_row(pz, i, cnt);
-    if (z > 0) dz -= load_row(pz, i - plane, cnt);
-    else if (has_prev) dz -= load_row(pz_prev, (size_t)(prev_planes - 1) * plane + (i - (size_t)z * plane), cnt);
-    return d + aw * dz;
+    return d;
+}
+
+/* pz of the plane before a slab's first plane at its elements i0.. (0 when has_prev is 0) */
+inline realv plane_before(__global const real_t *pz_prev, const int has_prev, const int prev_planes,
+                          const size_t plane, const size_t i0, const int cnt) {
+    return has_prev ? load_row(pz_prev, (size_t)(prev_planes - 1) * plane + i0, cnt) : (realv)0;
 }
 
 /* ---- Complex row vectors: CW = max(VW/2, 1) neighbouring complex values per work-item -------------

@@ -11,37 +11,44 @@
  * Reduces into slots slot0 + (0..7): ||x - x_old||^2, ||x||^2, sum l1w|x|, TV(x), ||x - w'||^2, ||w' - w||^2,
  * ||w'||^2, ||rho'||^2 (the last two scale the relative residuals of the stopping rule); TV(x) with
  * forward differences (Neumann boundary), x_next the next slab of x when has_next.
- * A row kernel (common.cl): global size (x blocks, row blocks, planes). */
+ * A row kernel (common.cl). */
 __kernel void update_w(__global const real_t *x, __global const real_t *x_next, const int has_next,
                        __global const real_t *x_old, __global real_t *s,
                        const real_t l1, __global const real_t *l1w, const real_t mu_w,
                        const real_t l1_s, const real_t mu_s, const real_t aw, const int iso,
                        const int planes, const int ny, const int nx, const int rows,
                        __global real_t *partials, const int pstride, const int slot0) {
-    int x0, cnt, y0, y1, z;
+    int x0, cnt, y0, y1;
     size_t g;
-    if (!row_item(nx, ny, rows, &x0, &cnt, &y0, &y1, &z, &g)) return;
-    const real_t lw = l1w[z];   /* the plane's weight of the l1 term */
-    const real_t c = l1 * lw, cs = l1_s * lw;
+    if (!row_item(nx, ny, rows, &x0, &cnt, &y0, &y1, &g)) return;
+    const size_t plane = (size_t)ny * nx;
     realv a0 = 0, a1 = 0, a2 = 0, a3 = 0, a4 = 0, a5 = 0, a6 = 0, a7 = 0;
     for (int y = y0; y < y1; y++) {
-        const size_t i = ((size_t)z * ny + y) * nx + x0;
-        const realv xi = load_row(x, i, cnt), si = load_row(s, i, cnt);
-        const realv sn = xi + split_rho(si, cs, mu_s) / mu_w;
-        const realv wn = split_w(sn, c, mu_w), rn = split_rho(sn, c, mu_w);
-        const realv dx = xi - load_row(x_old, i, cnt), pw = xi - wn, dw = wn - split_w(si, cs, mu_s);
-        store_row(sn, s, i, cnt);
-        realv gx, gy, gz;
-        grad_row(x, x_next, has_next, i, xi, cnt, z, y, planes, ny, nx, aw, &gx, &gy, &gz);
-        const realv tv = iso ? sqrt(gx * gx + gy * gy + gz * gz) : fabs(gx) + fabs(gy) + fabs(gz);
-        a0 += lanes_below(dx * dx, cnt);
-        a1 += lanes_below(xi * xi, cnt);
-        a2 += lanes_below(lw * fabs(xi), cnt);
-        a3 += lanes_below(tv, cnt);
-        a4 += lanes_below(pw * pw, cnt);
-        a5 += lanes_below(dw * dw, cnt);
-        a6 += lanes_below(wn * wn, cnt);
-        a7 += lanes_below(rn * rn, cnt);
+        size_t i = (size_t)y * nx + x0;
+        realv xi = load_row(x, i, cnt);
+        for (int z = 0; z < planes; z++, i += plane) {
+            const real_t lw = l1w[z];   /* the plane's weight of the l1 term */
+            const real_t c = l1 * lw, cs = l1_s * lw;
+            const realv si = load_row(s, i, cnt);
+            const realv sn = xi + split_rho(si, cs, mu_s) / mu_w;
+            const realv wn = split_w(sn, c, mu_w), rn = split_rho(sn, c, mu_w);
+            const realv dx = xi - load_row(x_old, i, cnt), pw = xi - wn, dw = wn - split_w(si, cs, mu_s);
+            store_row(sn, s, i, cnt);
+            const realv xn = next_plane(x, x_next, has_next, i, plane, z, planes, cnt, xi);
+            realv gx, gy;
+            grad_xy(x, i, xi, cnt, y, ny, nx, &gx, &gy);
+            const realv gz = aw * (xn - xi);
+            const realv tv = iso ? sqrt(gx * gx + gy * gy + gz * gz) : fabs(gx) + fabs(gy) + fabs(gz);
+            a0 += lanes_below(dx * dx, cnt);
+            a1 += lanes_below(xi * xi, cnt);
+            a2 += lanes_below(lw * fabs(xi), cnt);
+            a3 += lanes_below(tv, cnt);
+            a4 += lanes_below(pw * pw, cnt);
+            a5 += lanes_below(dw * dw, cnt);
+            a6 += lanes_below(wn * wn, cnt);
+            a7 += lanes_below(rn * rn, cnt);
+            xi = xn;
+        }
     }
     const real_t sums[8] = {lanes_sum(a0), lanes_sum(a1), lanes_sum(a2), lanes_sum(a3),
                             lanes_sum(a4), lanes_sum(a5), lanes_sum(a6), lanes_sum(a7)};
@@ -72,9 +79,9 @@ __kernel void update_v(__global real_t *v, __global real_t *xi, __global const r
     /* cty: the measurement embedded in the padded grid; cw: each pixel's weight in the data term (1 on
        the sensor, 0 outside it and on masked pixels): v = (cw y + mu_v Hx + xi) / (cw + mu_v).
        A row kernel (common.cl) over the one plane. */
-    int x0, cnt, y0, y1, z;
+    int x0, cnt, y0, y1;
     size_t g;
-    if (!row_item(px, py, rows, &x0, &cnt, &y0, &y1, &z, &g)) return;
+    if (!row_item(px, py, rows, &x0, &cnt, &y0, &y1, &g)) return;
     realv a0 = 0, a1 = 0, a2 = 0, a3 = 0, a4 = 0, a5 = 0;
     for (int y = y0; y < y1; y++) {
         const size_t i = (size_t)y * px + x0;

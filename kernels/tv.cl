@@ -1,7 +1,7 @@
 /* The TV split of the ADMM: u = prox_{tau TV}(z), z = x + eta/mu_u, tau = lambda_tv/mu_u, by
  * projected-gradient (Chambolle) iterations on the dual p = (px, py, pz), warm-started across
  * outer iterations:  p <- P(p + step grad(div p - z/tau)),  u = z - tau div p.
- * grad: forward differences (Neumann), the axial one weighted by aw; div = -grad^T (grad_row, div_row in common.cl).
+ * grad: forward differences (Neumann), the axial one weighted by aw; div = -grad^T (grad_xy, div_xy in common.cl).
  * P: unit ball per voxel (isotropic) or [-1, 1] per component (anisotropic).
  * The dual eta is not stored: eta' = eta + mu_u (x - u') = mu_u tau div p = lambda_tv div p, with p as
  * the last dual iterations left it (eta = 0 while p = 0, at the start and with TV off).
@@ -11,29 +11,34 @@
 /* g = div p - z / tau over one slab.  z = x + eta/mu_u = x + tau div p is constant over the dual
  * iterations of one outer iteration: the first (`first`, p still the previous outer iteration's)
  * computes it and stores it in `z`, the later ones read it from there.
- * This and the other kernels of this file are row kernels (common.cl): global size (x blocks, row
- * blocks, planes), `rows` rows per work-item. */
+ * This and the other kernels of this file are row kernels (common.cl), `rows` rows per work-item. */
 __kernel void tv_residual(__global real_t *g,
                           __global const real_t *px, __global const real_t *py, __global const real_t *pz,
                           __global const real_t *pz_prev, const int has_prev, const int prev_planes,
                           const int has_next, __global const real_t *x, __global real_t *z, const int first,
                           const real_t tau, const real_t inv_tau, const real_t aw,
                           const int planes, const int ny, const int nx, const int rows) {
-    int x0, cnt, y0, y1, zz;
+    int x0, cnt, y0, y1;
     size_t item;
-    if (!row_item(nx, ny, rows, &x0, &cnt, &y0, &y1, &zz, &item)) return;
+    if (!row_item(nx, ny, rows, &x0, &cnt, &y0, &y1, &item)) return;
+    const size_t plane = (size_t)ny * nx;
     for (int y = y0; y < y1; y++) {
-        const size_t i = ((size_t)zz * ny + y) * nx + x0;
-        const realv d = div_row(px, py, pz, pz_prev, has_prev, has_next, i, x0, cnt, zz, y,
-                                planes, prev_planes, ny, nx, aw);
-        realv zv;
-        if (first) {
-            zv = load_row(x, i, cnt) + tau * d;
-            store_row(zv, z, i, cnt);
-        } else {
-            zv = load_row(z, i, cnt);
+        size_t i = (size_t)y * nx + x0;
+        realv pzb = plane_before(pz_prev, has_prev, prev_planes, plane, i, cnt);
+        for (int zz = 0; zz < planes; zz++, i += plane) {
+            const realv pzc = load_row(pz, i, cnt);
+            const realv d = div_xy(px, py, i, x0, cnt, y, ny, nx)
+                            + aw * ((zz == planes - 1 && !has_next ? (realv)0 : pzc) - pzb);
+            pzb = pzc;
+            realv zv;
+            if (first) {
+                zv = load_row(x, i, cnt) + tau * d;
+                store_row(zv, z, i, cnt);
+            } else {
+                zv = load_row(z, i, cnt);
+            }
+            store_row(d - zv * inv_tau, g, i, cnt);
         }
-        store_row(d - zv * inv_tau, g, i, cnt);
     }
 }
 
@@ -42,58 +47,69 @@ __kernel void tv_dual_step(__global real_t *px, __global real_t *py, __global re
                            __global const real_t *g, __global const real_t *g_next, const int has_next,
                            const real_t step, const real_t aw, const int iso,
                            const int planes, const int ny, const int nx, const int rows) {
-    int x0, cnt, y0, y1, z;
+    int x0, cnt, y0, y1;
     size_t item;
-    if (!row_item(nx, ny, rows, &x0, &cnt, &y0, &y1, &z, &item)) return;
+    if (!row_item(nx, ny, rows, &x0, &cnt, &y0, &y1, &item)) return;
+    const size_t plane = (size_t)ny * nx;
     for (int y = y0; y < y1; y++) {
-        const size_t i = ((size_t)z * ny + y) * nx + x0;
-        realv gx, gy, gz;
-        grad_row(g, g_next, has_next, i, load_row(g, i, cnt), cnt, z, y, planes, ny, nx, aw, &gx, &gy, &gz);
-        realv a = load_row(px, i, cnt) + step * gx, b = load_row(py, i, cnt) + step * gy;
-        realv d = load_row(pz, i, cnt) + step * gz;
-        if (iso) {
-            const realv inv = (real_t)1 / fmax((realv)1, sqrt(a * a + b * b + d * d));
-            a *= inv; b *= inv; d *= inv;
-        } else {
-            a = clamp(a, (real_t)-1, (real_t)1);
-            b = clamp(b, (real_t)-1, (real_t)1);
-            d = clamp(d, (real_t)-1, (real_t)1);
+        size_t i = (size_t)y * nx + x0;
+        realv gc = load_row(g, i, cnt);
+        for (int z = 0; z < planes; z++, i += plane) {
+            const realv gn = next_plane(g, g_next, has_next, i, plane, z, planes, cnt, gc);
+            realv gx, gy;
+            grad_xy(g, i, gc, cnt, y, ny, nx, &gx, &gy);
+            realv a = load_row(px, i, cnt) + step * gx, b = load_row(py, i, cnt) + step * gy;
+            realv d = load_row(pz, i, cnt) + step * aw * (gn - gc);
+            gc = gn;
+            if (iso) {
+                const realv inv = (real_t)1 / fmax((realv)1, sqrt(a * a + b * b + d * d));
+                a *= inv; b *= inv; d *= inv;
+            } else {
+                a = clamp(a, (real_t)-1, (real_t)1);
+                b = clamp(b, (real_t)-1, (real_t)1);
+                d = clamp(d, (real_t)-1, (real_t)1);
+            }
+            store_row(a, px, i, cnt);
+            store_row(b, py, i, cnt);
+            store_row(d, pz, i, cnt);
         }
-        store_row(a, px, i, cnt);
-        store_row(b, py, i, cnt);
-        store_row(d, pz, i, cnt);
     }
 }
 
 /* u' = z - tau div p and eta' = lambda_tv div p (tau = 0, TV off: u' = x, eta' = 0); z as tv_residual
- * stored it.  Reduces into slots slot0 + (0..3): ||x - u'||^2, ||u' - u||^2, ||u'||^2, ||eta'||^2.
- * A row kernel (common.cl): global size (x blocks, row blocks, planes). */
+ * stored it.  Reduces into slots slot0 + (0..3): ||x - u'||^2, ||u' - u||^2, ||u'||^2, ||eta'||^2. */
 __kernel void tv_finish(__global real_t *u, __global const real_t *x, __global const real_t *z,
                         __global const real_t *px, __global const real_t *py, __global const real_t *pz,
                         __global const real_t *pz_prev, const int has_prev, const int prev_planes,
                         const int has_next, const real_t tv, const real_t tau, const real_t aw,
                         const int planes, const int ny, const int nx, const int rows,
                         __global real_t *partials, const int pstride, const int slot0) {
-    int x0, cnt, y0, y1, zz;
+    int x0, cnt, y0, y1;
     size_t g;
-    if (!row_item(nx, ny, rows, &x0, &cnt, &y0, &y1, &zz, &g)) return;
+    if (!row_item(nx, ny, rows, &x0, &cnt, &y0, &y1, &g)) return;
+    const size_t plane = (size_t)ny * nx;
     realv a0 = 0, a1 = 0, a2 = 0, a3 = 0;
     for (int y = y0; y < y1; y++) {
-        const size_t i = ((size_t)zz * ny + y) * nx + x0;
-        const realv xv = load_row(x, i, cnt);
-        realv un = xv, en = 0;
-        if (tau > 0) {
-            const realv d = div_row(px, py, pz, pz_prev, has_prev, has_next, i, x0, cnt, zz, y,
-                                    planes, prev_planes, ny, nx, aw);
-            un = load_row(z, i, cnt) - tau * d;
-            en = tv * d;
+        size_t i = (size_t)y * nx + x0;
+        realv pzb = plane_before(pz_prev, has_prev, prev_planes, plane, i, cnt);
+        for (int zz = 0; zz < planes; zz++, i += plane) {
+            const realv xv = load_row(x, i, cnt);
+            realv un = xv, en = 0;
+            if (tau > 0) {
+                const realv pzc = load_row(pz, i, cnt);
+                const realv d = div_xy(px, py, i, x0, cnt, y, ny, nx)
+                                + aw * ((zz == planes - 1 && !has_next ? (realv)0 : pzc) - pzb);
+                pzb = pzc;
+                un = load_row(z, i, cnt) - tau * d;
+                en = tv * d;
+            }
+            const realv pu = xv - un, du = un - load_row(u, i, cnt);
+            store_row(un, u, i, cnt);
+            a0 += lanes_below(pu * pu, cnt);
+            a1 += lanes_below(du * du, cnt);
+            a2 += lanes_below(un * un, cnt);
+            a3 += lanes_below(en * en, cnt);
         }
-        const realv pu = xv - un, du = un - load_row(u, i, cnt);
-        store_row(un, u, i, cnt);
-        a0 += lanes_below(pu * pu, cnt);
-        a1 += lanes_below(du * du, cnt);
-        a2 += lanes_below(un * un, cnt);
-        a3 += lanes_below(en * en, cnt);
     }
     const real_t sums[4] = {lanes_sum(a0), lanes_sum(a1), lanes_sum(a2), lanes_sum(a3)};
     add_partials(partials, pstride, g, slot0, sums, 4);
@@ -105,12 +121,19 @@ __kernel void tv_eta(__global real_t *eta,
                      __global const real_t *pz_prev, const int has_prev, const int prev_planes,
                      const int has_next, const real_t tv, const real_t aw,
                      const int planes, const int ny, const int nx, const int rows) {
-    int x0, cnt, y0, y1, zz;
+    int x0, cnt, y0, y1;
     size_t item;
-    if (!row_item(nx, ny, rows, &x0, &cnt, &y0, &y1, &zz, &item)) return;
+    if (!row_item(nx, ny, rows, &x0, &cnt, &y0, &y1, &item)) return;
+    const size_t plane = (size_t)ny * nx;
     for (int y = y0; y < y1; y++) {
-        const size_t i = ((size_t)zz * ny + y) * nx + x0;
-        store_row(tv * div_row(px, py, pz, pz_prev, has_prev, has_next, i, x0, cnt, zz, y,
-                               planes, prev_planes, ny, nx, aw), eta, i, cnt);
+        size_t i = (size_t)y * nx + x0;
+        realv pzb = plane_before(pz_prev, has_prev, prev_planes, plane, i, cnt);
+        for (int zz = 0; zz < planes; zz++, i += plane) {
+            const realv pzc = load_row(pz, i, cnt);
+            const realv d = div_xy(px, py, i, x0, cnt, y, ny, nx)
+                            + aw * ((zz == planes - 1 && !has_next ? (realv)0 : pzc) - pzb);
+            pzb = pzc;
+            store_row(tv * d, eta, i, cnt);
+        }
     }
 }

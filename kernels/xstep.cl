@@ -14,16 +14,26 @@ __kernel void rhs_volume(__global real_t *t, __global const real_t *u, __global 
                          const real_t l1_s, __global const real_t *l1w, const real_t mu_s, const real_t aw,
                          const int planes, const int ny, const int nx, const int rows) {
     /* a row kernel (common.cl) */
-    int x0, cnt, y0, y1, z;
+    int x0, cnt, y0, y1;
     size_t item;
-    if (!row_item(nx, ny, rows, &x0, &cnt, &y0, &y1, &z, &item)) return;
-    const real_t c = l1_s * l1w[z];
+    if (!row_item(nx, ny, rows, &x0, &cnt, &y0, &y1, &item)) return;
+    const size_t plane = (size_t)ny * nx;
     for (int y = y0; y < y1; y++) {
-        const size_t i = ((size_t)z * ny + y) * nx + x0;
-        const realv eta = tv > 0 ? tv * div_row(px, py, pz, pz_prev, has_prev, has_next, i, x0, cnt, z, y,
-                                                planes, prev_planes, ny, nx, aw) : (realv)0;
-        const realv si = load_row(s, i, cnt);
-        store_row(mu_u * load_row(u, i, cnt) - eta + mu_w * split_w(si, c, mu_s) - split_rho(si, c, mu_s), t, i, cnt);
+        size_t i = (size_t)y * nx + x0;
+        realv pzb = plane_before(pz_prev, has_prev, prev_planes, plane, i, cnt);
+        for (int z = 0; z < planes; z++, i += plane) {
+            realv eta = 0;
+            if (tv > 0) {
+                const realv pzc = load_row(pz, i, cnt);
+                eta = tv * (div_xy(px, py, i, x0, cnt, y, ny, nx)
+                            + aw * ((z == planes - 1 && !has_next ? (realv)0 : pzc) - pzb));
+                pzb = pzc;
+            }
+            const real_t c = l1_s * l1w[z];
+            const realv si = load_row(s, i, cnt);
+            store_row(mu_u * load_row(u, i, cnt) - eta + mu_w * split_w(si, c, mu_s) - split_rho(si, c, mu_s),
+                      t, i, cnt);
+        }
     }
 }
 

@@ -54,7 +54,7 @@ DERIVED = ("w", "rho", "eta")
 
 log = logging.getLogger(__name__)
 #: partials per sum of the fused update-and-reduce kernels at most (row kernels, kernels/common.cl:
-#: a work-item per VW x of `rows` rows of a plane): enough work-items for a GPU's cores, few enough
+#: a work-item per VW x of `rows` rows, all planes): enough work-items for a GPU's cores, few enough
 #: that reduce_partials' pass stays small next to a volume's
 PARTIALS = {"CPU": 2**14, "GPU": 2**18}
 #: elements per work-item of the row kernels at least (where the columns are that long): the partials
@@ -219,30 +219,31 @@ class ADMMSolver:
     def _row_layout(self, part, vw: int, rows: int | None = None):
         """The row kernels' work on ``part`` (kernels/common.cl): ``vw`` reals per work-item (the
         kernels' VW, built in) and ``rows`` rows each (by default as few as keep the partials per sum
-        within PARTIALS for the largest slab), and the partials buffer that layout needs."""
+        within PARTIALS, and each work-item at ROW_ELEMENTS or more for the largest slab), and the
+        partials buffer that layout needs."""
         ny, nx = self.P
         nxb = -(-nx // vw)
         if rows is None:
             cap = PARTIALS.get(part.rt.caps.kind, PARTIALS["GPU"])
-            rows = min(ny, max(-(-ROW_ELEMENTS // vw), -(-nxb * ny * part.max_planes // cap)))
+            rows = min(ny, max(-(-ROW_ELEMENTS // (vw * part.max_planes)), -(-nxb * ny // cap)))
         part.vw, part.rows = vw, int(rows)
         part.cw = max(vw // 2, 1)   # complex values per work-item of xstep_accumulate, xstep_solve
         part.k.update({n: kernels.kernel(part.rt, f, n, self.dtype, {"VW": vw}) for f, n in ROW_KERNELS})
         part.local = kernels.work_group_size(part.rt, part.k["reduce_partials"])
-        part.pstride = nxb * -(-ny // part.rows) * part.max_planes   # one partial per work-item and sum
+        part.pstride = nxb * -(-ny // part.rows)   # one partial per work-item and sum
         part.partials = part.rt.zeros(NSLOTS * part.pstride, self.dtype)
 
-    def _row_grid(self, part, name, planes, *args):
-        """Launch a row kernel without sums over ``planes`` planes (``args``: those before ``rows``), a row
-        per work-item: on GPUs (VW = 1) a work-item per element."""
+    def _row_grid(self, part, name, *args):
+        """Launch a row kernel without sums over a slab (``args``: those before ``rows``), a row
+        per work-item (on GPUs, VW = 1: a work-item per element of a plane, walking the planes)."""
         ny, nx = self.P
-        kernels.launch(part.rt, part.k[name], (-(-nx // part.vw), ny, int(planes)), *args, np.int32(1))
+        kernels.launch(part.rt, part.k[name], (-(-nx // part.vw), ny), *args, np.int32(1))
 
-    def _rows(self, part, name, planes, slot, *args):
-        """Launch a fused update + reduction (a row kernel) over ``planes`` planes; its sums go to the
+    def _rows(self, part, name, slot, *args):
+        """Launch a fused update + reduction (a row kernel) over a slab; its sums go to the
         partials of slots slot...; ``args``: the kernel's arguments before ``rows``."""
         ny, nx = self.P
-        kernels.launch(part.rt, part.k[name], (-(-nx // part.vw), -(-ny // part.rows), int(planes)), *args,
+        kernels.launch(part.rt, part.k[name], (-(-nx // part.vw), -(-ny // part.rows)), *args,
                        np.int32(part.rows), part.partials.data, np.int32(part.pstride), np.int32(slot))
 
     def _next(self, i, j, name):
@@ -292,7 +293,7 @@ class ADMMSolver:
         for i, part, j, n, a in self._each_slab(("u", "s", "px", "py", "pz", "hs"), ("spec",), ("g",)):
             pl = part.planes
             prev, pn, hp = self._prev(i, j, "pz")
-            self._row_grid(part, "rhs_volume", n, a["g"].data, a["u"].data, a["s"].data, a["px"].data, a["py"].data,
+            self._row_grid(part, "rhs_volume", a["g"].data, a["u"].data, a["s"].data, a["px"].data, a["py"].data,
                        a["pz"].data, (prev if hp else a["pz"]).data, I(hp), I(pn), I(self._has_next(i, j)),
                        R(mu_u), R(mu_w), R(self.tv_split), R(l1_s), part.l1w[j].data, R(mu_s), aw,
                        I(n), I(ny), I(nx))
@@ -327,7 +328,7 @@ class ADMMSolver:
         aw, iso = R(self.p.tv_axial_weight), I(1 if self.p.tv_isotropic else 0)
         for i, part, j, n, a in self._each_slab(("x", "g", "s"), ("s",)):
             xn, has_next = self._next(i, j, "x")
-            self._rows(part, "update_w", n, DX2, a["x"].data, (xn if has_next else a["x"]).data,
+            self._rows(part, "update_w", DX2, a["x"].data, (xn if has_next else a["x"]).data,
                       I(has_next), a["g"].data, a["s"].data, R(l1), part.l1w[j].data, R(mu_w), R(l1_s), R(mu_s),
                       aw, iso, I(n), I(ny), I(nx))
         self.l1_split = (float(l1), float(mu_w))
@@ -358,7 +359,7 @@ class ADMMSolver:
             t = part.rt.zeros(a["s"].shape, self.dtype)
             if name == "eta":
                 prev, pn, hp = self._prev(i, j, "pz")
-                self._row_grid(part, "tv_eta", n, t.data, a["px"].data, a["py"].data, a["pz"].data,
+                self._row_grid(part, "tv_eta", t.data, a["px"].data, a["py"].data, a["pz"].data,
                            (prev if hp else a["pz"]).data, I(hp), I(pn), I(self._has_next(i, j)),
                            R(self.tv_split), R(self.p.tv_axial_weight), I(n), I(ny), I(nx))
             else:
@@ -472,7 +473,7 @@ class ADMMSolver:
             # ---- w split (+ objective terms of x)
             self.w_step(ctl.l1, mu_w)
             # ---- v split (the plane lives on part 0)
-            self._rows(p0, "update_v", 1, RV2, pl0["v"].data, pl0["xi"].data, pl0["hx"].data,
+            self._rows(p0, "update_v", RV2, pl0["v"].data, pl0["xi"].data, pl0["hx"].data,
                       pl0["cty"].data, pl0["cw"].data, R(mu_v), I(ny), I(nx))
             # ---- u split (TV)
             tau = ctl.tv / mu_u
@@ -487,16 +488,16 @@ class ADMMSolver:
                     writes = ("px", "py", "pz") + (("spec",) if first else ())
                     for i, part, j, n, a in self._each_slab(reads, writes, edges=("g",), reverse=True):
                         prev, pn, hp = self._prev(i, j, "pz")
-                        self._row_grid(part, "tv_residual", n, a["g"].data, *grid(a), (prev if hp else a["pz"]).data,
+                        self._row_grid(part, "tv_residual", a["g"].data, *grid(a), (prev if hp else a["pz"]).data,
                                    I(hp), I(pn), I(self._has_next(i, j)), a["x" if first else "spec"].data,
                                    a["spec"].data, I(first), R(tau), R(1.0 / tau), aw, I(n), I(ny), I(nx))
                         gn, hn = self._next(i, j, "g")
-                        self._row_grid(part, "tv_dual_step", n, *grid(a), a["g"].data, (gn if hn else a["g"]).data,
+                        self._row_grid(part, "tv_dual_step", *grid(a), a["g"].data, (gn if hn else a["g"]).data,
                                    I(hn), step, aw, iso, I(n), I(ny), I(nx))
             for i, part, j, n, a in self._each_slab(("u", "x", "px", "py", "pz") + (("spec",) if tau > 0 else ()),
                                                     ("u",)):
                 prev, pn, hp = self._prev(i, j, "pz")
-                self._rows(part, "tv_finish", n, RU2, a["u"].data, a["x"].data,
+                self._rows(part, "tv_finish", RU2, a["u"].data, a["x"].data,
                           a["spec" if tau > 0 else "x"].data, *grid(a), (prev if hp else a["pz"]).data, I(hp), I(pn),
                           I(self._has_next(i, j)), R(ctl.tv), R(tau), aw, I(n), I(ny), I(nx))
             # ---- the scalars of this iteration: one small read per part, added in float64
