@@ -100,8 +100,9 @@ def iteration_bytes(nz, padded_shape, dtype, backend, tv_iters) -> int:
 
 
 #: seconds per iteration over the bandwidth floor (iteration_bytes / copy rate) of cm2cl's kernels,
-#: measured on PoCL (2-core AVX-512 CPU, docs/benchmarks.md: 1.9); GPUs not measured
-KERNEL_FLOOR_RATIO = 1.9
+#: measured on PoCL (2-core AVX-512 CPU, docs/benchmarks.md "ADMM iteration": 2.3 at the demo size with
+#: the floor that counts the fused x step); GPUs not measured
+KERNEL_FLOOR_RATIO = 2.3
 
 
 def expected_seconds(layout, padded_shape, dtype, backend, tv_iters, copy_rates, transfer_rates) -> float:
