@@ -80,6 +80,7 @@ def workload():
                                dtype=dtype, backend="cl", padded_shape=(16, 30), max_slab_planes=slabs)
                 for part in s.parts:
                     s._row_layout(part, vw, rows)
+                s.fuse_xstep = vw == 1   # the x step's solve inside the inverse FFT, and alone (xstep_solve)
                 s.solve(meas.astype(dtype))
                 for name in ("w", "rho", "eta"):   # the state the iteration derives (split_state, tv_eta)
                     s.get_volume(name)
@@ -121,7 +122,7 @@ def main(argv=None):
              f"Made by `python tools/oclgrind_check.py` ({' '.join(version[:2])}, flags `--data-races "
              f"--uniform-writes`), {sec:.0f} s. Workload: `tools/oclgrind_check.py --workload` (float32 and "
              "float64; cm2cl's own FFT on sizes with radices 2, 3, 4, 5, 7; forward and adjoint; ADMM with "
-             "isotropic and anisotropic TV, whole and in two slabs, row kernels at the GPU and CPU widths).", "",
+             "isotropic and anisotropic TV, whole and in two slabs, row kernels at the GPU and CPU widths, the x step fused into the inverse FFT and not).", "",
              f"- kernels in `kernels/*.cl`: {len(want)}; ran under Oclgrind: {len(want & ran)}"
              + (f"; **not run: {', '.join(missing)}**" if missing else ""),
              f"- findings: {len(findings)}" + ("" if findings else " (no invalid access, data race or "
