@@ -202,17 +202,20 @@ inline realv next_plane(__global const real_t *v, __global const real_t *v_next,
     return vc;
 }
 
-/* div p = -grad^T p, p = (px, py, pz) the TV dual: backward differences, p taken as 0 past the last
- * index. The lateral part at the VW elements i.. of row y here; the axial part by the caller:
- * aw ((last ? 0 : pz) - pz of the plane before), carrying pz to the next plane, with the plane
- * before the slab's first from plane_before (pz_prev: the previous slab, when has_prev; its last
- * plane is the z-1 neighbour), `last` the slab's last plane when no plane follows it (has_next). */
-inline realv div_xy(__global const real_t *px, __global const real_t *py, const size_t i, const int x0,
-                    const int cnt, const int y, const int ny, const int nx) {
+/* div p = -grad^T p at the VW elements i.. of plane z, row y of a slab of `planes` planes, p = (px, py,
+ * pz) the TV dual: backward differences, p taken as 0 past the last index (the slab's last plane is
+ * the last when has_next is 0). *pzb: pz of the plane before (plane_before for the slab's first plane),
+ * carried: it becomes this plane's pz. */
+inline realv div_step(__global const real_t *px, __global const real_t *py, __global const real_t *pz,
+                      const size_t i, const int x0, const int cnt, const int y, const int z, const int planes,
+                      const int has_next, const int ny, const int nx, const real_t aw, realv *pzb) {
     const realv pxv = load_row(px, i, cnt);
     realv d = lanes_below(pxv, cnt - 1) - from_left(x0 > 0 ? px[i - 1] : (real_t)0, pxv);
     if (y < ny - 1) d += load_row(py, i, cnt);
     if (y > 0) d -= load_row(py, i - nx, cnt);
+    const realv pzc = load_row(pz, i, cnt);
+    d += aw * ((z == planes - 1 && !has_next ? (realv)0 : pzc) - *pzb);
+    *pzb = pzc;
     return d;
 }
 

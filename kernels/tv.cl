@@ -1,7 +1,7 @@
 /* The TV split of the ADMM: u = prox_{tau TV}(z), z = x + eta/mu_u, tau = lambda_tv/mu_u, by
  * projected-gradient (Chambolle) iterations on the dual p = (px, py, pz), warm-started across
  * outer iterations:  p <- P(p + step grad(div p - z/tau)),  u = z - tau div p.
- * grad: forward differences (Neumann), the axial one weighted by aw; div = -grad^T (grad_xy, div_xy in common.cl).
+ * grad: forward differences (Neumann), the axial one weighted by aw; div = -grad^T (grad_xy, div_step in common.cl).
  * P: unit ball per voxel (isotropic) or [-1, 1] per component (anisotropic).
  * The dual eta is not stored: eta' = eta + mu_u (x - u') = mu_u tau div p = lambda_tv div p, with p as
  * the last dual iterations left it (eta = 0 while p = 0, at the start and with TV off).
@@ -26,10 +26,7 @@ __kernel void tv_residual(__global real_t *g,
         size_t i = (size_t)y * nx + x0;
         realv pzb = plane_before(pz_prev, has_prev, prev_planes, plane, i, cnt);
         for (int zz = 0; zz < planes; zz++, i += plane) {
-            const realv pzc = load_row(pz, i, cnt);
-            const realv d = div_xy(px, py, i, x0, cnt, y, ny, nx)
-                            + aw * ((zz == planes - 1 && !has_next ? (realv)0 : pzc) - pzb);
-            pzb = pzc;
+            const realv d = div_step(px, py, pz, i, x0, cnt, y, zz, planes, has_next, ny, nx, aw, &pzb);
             realv zv;
             if (first) {
                 zv = load_row(x, i, cnt) + tau * d;
@@ -96,10 +93,7 @@ __kernel void tv_finish(__global real_t *u, __global const real_t *x, __global c
             const realv xv = load_row(x, i, cnt);
             realv un = xv, en = 0;
             if (tau > 0) {
-                const realv pzc = load_row(pz, i, cnt);
-                const realv d = div_xy(px, py, i, x0, cnt, y, ny, nx)
-                                + aw * ((zz == planes - 1 && !has_next ? (realv)0 : pzc) - pzb);
-                pzb = pzc;
+                const realv d = div_step(px, py, pz, i, x0, cnt, y, zz, planes, has_next, ny, nx, aw, &pzb);
                 un = load_row(z, i, cnt) - tau * d;
                 en = tv * d;
             }
@@ -129,10 +123,7 @@ __kernel void tv_eta(__global real_t *eta,
         size_t i = (size_t)y * nx + x0;
         realv pzb = plane_before(pz_prev, has_prev, prev_planes, plane, i, cnt);
         for (int zz = 0; zz < planes; zz++, i += plane) {
-            const realv pzc = load_row(pz, i, cnt);
-            const realv d = div_xy(px, py, i, x0, cnt, y, ny, nx)
-                            + aw * ((zz == planes - 1 && !has_next ? (realv)0 : pzc) - pzb);
-            pzb = pzc;
+            const realv d = div_step(px, py, pz, i, x0, cnt, y, zz, planes, has_next, ny, nx, aw, &pzb);
             store_row(tv * d, eta, i, cnt);
         }
     }

@@ -24,10 +24,7 @@ __kernel void rhs_volume(__global real_t *t, __global const real_t *u, __global 
         for (int z = 0; z < planes; z++, i += plane) {
             realv eta = 0;
             if (tv > 0) {
-                const realv pzc = load_row(pz, i, cnt);
-                eta = tv * (div_xy(px, py, i, x0, cnt, y, ny, nx)
-                            + aw * ((z == planes - 1 && !has_next ? (realv)0 : pzc) - pzb));
-                pzb = pzc;
+                eta = tv * div_step(px, py, pz, i, x0, cnt, y, z, planes, has_next, ny, nx, aw, &pzb);
             }
             const real_t c = l1_s * l1w[z];
             const realv si = load_row(s, i, cnt);
