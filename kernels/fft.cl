@@ -9,7 +9,7 @@
  *  - one Stockham pass reads x[j + r N/R] and writes y[(j / Ns) Ns R + j % Ns + r Ns], so after the
  *    passes (Ns = 1, R0, R0 R1, ...) the result is in natural order without a bit-reversal step;
  *  - the odd radices 3, 5 (explicit) and 7, 11, ... (generic, constants from the twiddle table) run as
- *    one radix per pass; radices 2, 4 and 8 are explicit.
+ *    one radix per pass; radices 2, 4, 8 and 9 (as 3 x 3) are explicit.
  *
  * Line kernels (the whole line in local memory; one read and one write of global memory):
  *   defines FFT_N (complex line length), FFT_NPASS, FFT_R<p> and FFT_S<p> (radix and Ns of pass p).
@@ -109,6 +109,33 @@ inline void bf5(fc_t *v) {
     v[1] = m1 + n1; v[4] = m1 - n1; v[2] = m2 + n2; v[3] = m2 - n2;
 }
 
+/* a exp(-i theta) for c = cos(theta), s = sin(theta): the inner twiddles of bf9 */
+inline fc_t vrot(fc_t a, const real_t c, const real_t s) { return vmul_tw(a, (cplx_t)(c, -s)); }
+
+/* Radix 9 as 3 x 3: bf3 on (v[n2], v[n2 + 3], v[n2 + 6]) for n2 = 0..2, the inner twiddles
+ * exp(-2 pi i n2 k1 / 9), then bf3 across n2 for each k1; output k1 + 3 k2 (natural order). */
+inline void bf9(fc_t *v) {
+    const real_t c1 = (real_t)0.76604444311897803520239265055541667394;   /* cos(2 pi / 9) */
+    const real_t s1 = (real_t)0.64278760968653932632264340990726343291;   /* sin(2 pi / 9) */
+    const real_t c2 = (real_t)0.17364817766693034885171662676931479600;   /* cos(4 pi / 9) */
+    const real_t s2 = (real_t)0.98480775301220805936674302458952301367;   /* sin(4 pi / 9) */
+    const real_t c4 = (real_t)-0.93969262078590838405410927732473146994;  /* cos(8 pi / 9) */
+    const real_t s4 = (real_t)0.34202014332566873304409961468225958076;   /* sin(8 pi / 9) */
+    fc_t y[3][3];
+    for (int n2 = 0; n2 < 3; ++n2) {
+        fc_t t[3] = {v[n2], v[n2 + 3], v[n2 + 6]};
+        bf3(t);
+        y[n2][0] = t[0]; y[n2][1] = t[1]; y[n2][2] = t[2];
+    }
+    y[1][1] = vrot(y[1][1], c1, s1); y[1][2] = vrot(y[1][2], c2, s2);
+    y[2][1] = vrot(y[2][1], c2, s2); y[2][2] = vrot(y[2][2], c4, s4);
+    for (int k1 = 0; k1 < 3; ++k1) {
+        fc_t t[3] = {y[0][k1], y[1][k1], y[2][k1]};
+        bf3(t);
+        v[k1] = t[0]; v[k1 + 3] = t[1]; v[k1 + 6] = t[2];
+    }
+}
+
 /* Odd radix R (7, 11, ...): X_q = v0 + sum_k cos(2 pi qk/R) a_k - i sum_k sin(2 pi qk/R) b_k with
  * a_k = v_k + v_{R-k}, b_k = v_k - v_{R-k}; exp(-2 pi i m / R) = tw[m * (N / R)] (R divides N). */
 #define DEFINE_BF_ODD(R)                                                                        \
@@ -139,6 +166,7 @@ inline void butterfly(fc_t *v, const int R, __global const cplx_t *tw, const int
     else if (R == 4) bf4(v);
     else if (R == 5) bf5(v);
     else if (R == 8) bf8(v);
+    else if (R == 9) bf9(v);
     else if (R == 7) bf7(v, tw, n);
     else if (R == 11) bf11(v, tw, n);
     else if (R == 13) bf13(v, tw, n);

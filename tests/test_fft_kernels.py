@@ -103,13 +103,24 @@ def test_round_trip_returns_the_input(rt, dtype, shape):
 
 def test_factor_uses_the_fewest_passes_and_refuses_large_primes():
     assert factor(4096) == [8, 8, 8, 8]
-    assert factor(648) == [8, 3, 3, 3, 3]
+    assert factor(648) == [8, 9, 9]
+    assert factor(27) == [9, 3]
     assert factor(1470) == [2, 3, 5, 7, 7]
     assert factor(1) == []
     for n in SMOOTH:
         assert int(np.prod(factor(n))) == n
     with pytest.raises(InputError, match=r"fft size: 34 has the prime factor 17 > 13"):
         factor(34)
+
+
+@pytest.mark.parametrize("local_limit", [None, 0])
+def test_radix_9_in_float64_on_line_and_pass_kernels(rt, local_limit):
+    """bf9 (3 x 3 with its own inner twiddles) to float64 accuracy: 81 = 9 x 9 columns, 162 real
+    points per row (81 complex: 9 x 9), in local memory and through the pass kernels."""
+    x = np.random.default_rng(9).standard_normal((3, 81, 162))
+    e_fwd, e_inv, plan = errors(rt, x, np.float64, local_limit=local_limit)
+    assert plan.cols_local == (local_limit is None)
+    assert e_fwd <= 1e-14 and e_inv <= 1e-14, (e_fwd, e_inv)
 
 
 def test_odd_prime_radices_11_and_13(rt):

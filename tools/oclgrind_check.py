@@ -30,8 +30,8 @@ ERROR_PATTERNS = ("Invalid read", "Invalid write", "Data race", "Uniform write",
 
 
 def workload():
-    """Every kernel at least once: forward/adjoint, the FFT (radices 2, 3, 4, 5, 7; lines in local memory
-    and through the multi-pass kernels), the reikna path's layout kernels, ADMM iterations with TV
+    """Every kernel at least once: forward/adjoint, the FFT (radices 2, 3, 4, 5, 7, 9; lines in local memory
+    and through the multi-pass kernels; the GPU's and the CPU's work-group shapes), the reikna path's layout kernels, ADMM iterations with TV
     (isotropic and not), whole and in two slabs (halo paths), row kernels at the GPU and CPU widths, TV off, streamed
     slabs with plane-weighted l1."""
     import numpy as np
@@ -57,6 +57,14 @@ def workload():
             # the same lines through the multi-pass kernels (no line fits a local memory of 0 bytes)
             plan = ClPlan(rt, (nz,) + pad, dtype, local_limit=0)
             a = cl_array.to_device(rt.queue, rng.random((nz,) + pad).astype(dtype))
+            spec = cl_array.empty(rt.queue, plan.spec_shape, plan.cdtype)
+            plan.forward(a, spec)
+            plan.inverse(spec, a)
+        # the CPU shapes (V lines per work-item: blocks of V x V through the register transpose, the
+        # values past the last whole block one at a time; a last work-item with fewer than V lines)
+        for shape, group in (((3, 16, 20), (1, 1, 8)), ((5, 9, 26), (1, 1, 4)), ((1, 7, 14), (1, 2, 2))):
+            plan = ClPlan(rt, shape, dtype, group=group)
+            a = cl_array.to_device(rt.queue, rng.random(shape).astype(dtype))
             spec = cl_array.empty(rt.queue, plan.spec_shape, plan.cdtype)
             plan.forward(a, spec)
             plan.inverse(spec, a)
@@ -121,7 +129,7 @@ def main(argv=None):
     lines = ["# Oclgrind run of every kernel", "",
              f"Made by `python tools/oclgrind_check.py` ({' '.join(version[:2])}, flags `--data-races "
              f"--uniform-writes`), {sec:.0f} s. Workload: `tools/oclgrind_check.py --workload` (float32 and "
-             "float64; cm2cl's own FFT on sizes with radices 2, 3, 4, 5, 7; forward and adjoint; ADMM with "
+             "float64; cm2cl's own FFT on sizes with radices 2, 3, 4, 5, 7, 9; forward and adjoint; ADMM with "
              "isotropic and anisotropic TV, whole and in two slabs, row kernels at the GPU and CPU widths, the x step fused into the inverse FFT and not).", "",
              f"- kernels in `kernels/*.cl`: {len(want)}; ran under Oclgrind: {len(want & ran)}"
              + (f"; **not run: {', '.join(missing)}**" if missing else ""),

@@ -16,8 +16,8 @@ layout of VkFFT and numpy's rfft2):
 
 Where a line (or a block of columns) fits in local memory, one kernel does all its passes (one
 read and one write of global memory per dimension); otherwise a kernel per radix pass goes
-through global memory (needs a scratch buffer of one spectrum).  Radices 8, 4, 2, 3, 5, 7, 11
-and 13; other prime factors are refused.  Twiddles are computed in double on the host.
+through global memory (needs a scratch buffer of one spectrum).  Radices 8, 4, 2, 9, 3, 5, 7,
+11 and 13; other prime factors are refused.  Twiddles are computed in double on the host.
 """
 
 from __future__ import annotations
@@ -31,8 +31,10 @@ from ..errors import InputError
 
 __all__ = ["RADICES", "factor", "ClPlan"]
 
-#: radices in the order the passes use them; 8 before 4 before 2 (fewer passes)
-RADICES = (8, 4, 2, 3, 5, 7, 11, 13)
+#: radices in the order the passes use them; 8 before 4 before 2, 9 before 3 (fewer passes). Radix 9
+#: against two radix-3 passes, 648 x 864 x 16 float32 on PoCL, forward + inverse, three alternating
+#: runs: 31.4 / 34.0 / 35.1 ms against 32.4 / 35.6 / 36.3 ms; radix 16 did not pay there.
+RADICES = (8, 4, 2, 9, 3, 5, 7, 11, 13)
 MAX_PASSES = 12
 
 
