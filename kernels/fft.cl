@@ -440,12 +440,13 @@ __kernel void rows_c2r(__global real_t *dst, __global const cplx_t *src,
  * FFT_VEC neighbouring columns together, FFT_C such work-items per group in local dimension 0
  * (neighbouring work-items on neighbouring columns: coalesced global reads and writes); local
  * dimension 1 walks the butterflies.  conj_io != 0 conjugates on load and store (the inverse,
- * unnormalised).  With FFT_XSTEP (the inverse only) the data are the x step's B_i and the kernel
- * applies that step's last stage to them as it loads them. */
+ * unnormalised).  With FFT_XSTEP (the inverse only) the data are the x step's T_i and the kernel
+ * applies that step's last stage to them as it loads them (xstep_solve in xstep.cl). */
 __kernel void cols(__global cplx_t *data, const int w, const int conj_io,
                    __global const cplx_t *tw
 #ifdef FFT_XSTEP
-                   , __global const cplx_t *hs, __global const cplx_t *hx, const real_t mu_v, const real_t inv_c
+                   , __global const cplx_t *hs, __global const cplx_t *hr, __global const cplx_t *hx,
+                   const real_t mu_v, const real_t inv_c
 #endif
                    ) {
     __local fc_t a_[FFT_N * FFT_C], b_[FFT_N * FFT_C];
@@ -459,21 +460,22 @@ __kernel void cols(__global cplx_t *data, const int w, const int conj_io,
     for (int i = j0; i < FFT_N; i += js) {
         __global cplx_t *pi = p + (size_t)i * w;
         if (full) {
-            u.v = CAT(vload, FC_WIDTH)(0, (__global const real_t *)pi);
+            u.v = FC_LOAD(pi);
         } else {
             for (int q = 0; q < FFT_VEC; ++q) u.c[q] = (col + q < w) ? pi[q] : (cplx_t)(0, 0);
         }
 #ifdef FFT_XSTEP
         {   /* the x step's last stage on the way in (xstep_solve in xstep.cl, fused):
-               X_i = (B_i - mu_v conj(H_i) HX) * inv_c, H_i: hs at B's place, HX: hx's plane (py, w) */
-            __global const cplx_t *hi = hs + (pi - data), *xi = hx + (size_t)i * w + min(col, w - 1);
+               X_i = (B_i - mu_v conj(H_i) HX) * inv_c, B_i = conj(H_i) R + T_i; H_i: hs at T's place,
+               R and HX: the planes hr and hx (py, w) */
+            const size_t at = (size_t)i * w + min(col, w - 1);
+            __global const cplx_t *hi = hs + (pi - data), *ri = hr + at, *xi = hx + at;
             if (full) {
-                const fc_t h = CAT(vload, FC_WIDTH)(0, (__global const real_t *)hi);
-                const fc_t x = CAT(vload, FC_WIDTH)(0, (__global const real_t *)xi);
-                u.v = (u.v - mu_v * vmulc(h, x)) * inv_c;
+                const fc_t h = FC_LOAD(hi), r = FC_LOAD(ri), x = FC_LOAD(xi);
+                u.v = ((vmulc(h, r) + u.v) - mu_v * vmulc(h, x)) * inv_c;
             } else {
                 for (int q = 0; q < FFT_VEC; ++q)
-                    if (col + q < w) u.c[q] = (u.c[q] - mu_v * cmulc(hi[q], xi[q])) * inv_c;
+                    if (col + q < w) u.c[q] = ((cmulc(hi[q], ri[q]) + u.c[q]) - mu_v * cmulc(hi[q], xi[q])) * inv_c;
             }
         }
 #endif
@@ -486,7 +488,7 @@ __kernel void cols(__global cplx_t *data, const int w, const int conj_io,
         __global cplx_t *pi = p + (size_t)i * w;
         u.v = z[i * FFT_C] * sign;
         if (full) {
-            CAT(vstore, FC_WIDTH)(u.v, 0, (__global real_t *)pi);
+            FC_STORE(u.v, pi);
         } else {
             for (int q = 0; q < FFT_VEC; ++q) if (col + q < w) pi[q] = u.c[q];
         }

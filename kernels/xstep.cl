@@ -41,9 +41,10 @@ __kernel void rhs_plane(__global real_t *r, __global const real_t *v, __global c
     if (i < n) r[i] = mu_v * v[i] - xi[i];
 }
 
-/* B_i = conj(H_i) R + T_i, written over T;  S (+)= sum_i H_i B_i (Kahan, carried in comp).
+/* S (+)= sum_i H_i B_i with B_i = conj(H_i) R + T_i (Kahan, carried in comp); B is not stored: the
+ * solve forms it again from T, H and R (one spectrum volume less written per iteration).
  * CW frequencies per work-item (complex row vectors, common.cl): global size ceil(nfreq / CW). */
-__kernel void xstep_accumulate(__global cplx_t *T, __global const cplx_t *H, __global const cplx_t *R,
+__kernel void xstep_accumulate(__global const cplx_t *T, __global const cplx_t *H, __global const cplx_t *R,
                                __global cplx_t *S, __global cplx_t *comp,
                                const int planes, const ulong nfreq, const int first) {
     const size_t k = get_global_id(0) * CW;
@@ -61,7 +62,6 @@ __kernel void xstep_accumulate(__global cplx_t *T, __global const cplx_t *H, __g
         cload(H, j, cnt, &hr, &hi);
         cload(T, j, cnt, &tr, &ti);
         const chalf_t br = (hr * rr + hi * ri) + tr, bi = (hr * ri - hi * rr) + ti;   /* cmulc(h, r) + t */
-        cstore(br, bi, T, j, cnt);
         /* Kahan: s += h * b (cmul), carried in c (kahan_add2) */
         const chalf_t yr = (hr * br - hi * bi) - cr, yi = (hr * bi + hi * br) - ci;
         const chalf_t ur = sr + yr, ui = si + yi;
@@ -81,22 +81,25 @@ __kernel void xstep_hx(__global cplx_t *S, __global const real_t *hn2,
     if (k < nfreq) S[k] = S[k] / (c + mu_v * hn2[k]);
 }
 
-/* X_i = (B_i - mu_v conj(H_i) HX) / c, in place over B; CW frequencies per work-item (as
- * xstep_accumulate). */
-__kernel void xstep_solve(__global cplx_t *B, __global const cplx_t *H, __global const cplx_t *HX,
-                          const real_t c, const real_t mu_v, const int planes, const ulong nfreq) {
+/* X_i = (B_i - mu_v conj(H_i) HX) / c with B_i = conj(H_i) R + T_i (as xstep_accumulate formed it),
+ * in place over T; CW frequencies per work-item (as xstep_accumulate). */
+__kernel void xstep_solve(__global cplx_t *T, __global const cplx_t *H, __global const cplx_t *R,
+                          __global const cplx_t *HX, const real_t c, const real_t mu_v, const int planes,
+                          const ulong nfreq) {
     const size_t k = get_global_id(0) * CW;
     if (k >= nfreq) return;
     const size_t cnt = nfreq - k;
-    chalf_t xr, xi;
+    chalf_t rr, ri, xr, xi;
+    cload(R, k, cnt, &rr, &ri);
     cload(HX, k, cnt, &xr, &xi);
     const real_t inv_c = (real_t)1 / c;
     for (int i = 0; i < planes; ++i) {
         const size_t j = (size_t)i * nfreq + k;
-        chalf_t hr, hi, br, bi;
+        chalf_t hr, hi, tr, ti;
         cload(H, j, cnt, &hr, &hi);
-        cload(B, j, cnt, &br, &bi);
+        cload(T, j, cnt, &tr, &ti);
+        const chalf_t br = (hr * rr + hi * ri) + tr, bi = (hr * ri - hi * rr) + ti;   /* cmulc(h, r) + t */
         /* (b - mu_v cmulc(h, hx)) * inv_c */
-        cstore((br - mu_v * (hr * xr + hi * xi)) * inv_c, (bi - mu_v * (hr * xi - hi * xr)) * inv_c, B, j, cnt);
+        cstore((br - mu_v * (hr * xr + hi * xi)) * inv_c, (bi - mu_v * (hr * xi - hi * xr)) * inv_c, T, j, cnt);
     }
 }

@@ -152,24 +152,26 @@ def test_lines_per_work_item_follow_the_simd_width(rt):
 
 @pytest.mark.parametrize("shape,group", [((3, 24, 40), None), ((2, 30, 84), (16, 4, 1)), ((1, 18, 20), (2, 2, 4))])
 def test_inverse_with_the_x_step_fused_matches_numpy(rt, dtype, shape, group):
-    """ClPlan.inverse_xstep = the normalised inverse of X = (B - mu_v conj(H) HX) / c (xstep_solve in the
-    column pass's loads), against numpy in float64 on random B, H, HX: widths 21, 43 and 11 leave
-    partial vectors of columns for every lines-per-work-item choice; the pass path does not fuse."""
+    """ClPlan.inverse_xstep = the normalised inverse of X = (conj(H) R + T - mu_v conj(H) HX) / c
+    (xstep_solve in the column pass's loads), against numpy in float64 on random T, H, R, HX: widths 21,
+    43 and 11 leave partial vectors of columns for every lines-per-work-item choice; the pass path does
+    not fuse."""
     b, py, px = shape
     rng = np.random.default_rng(7)
     plan = ClPlan(rt, shape, dtype, group=group)
     w = px // 2 + 1
     cplx = lambda n: (rng.standard_normal((n, py, w)) + 1j * rng.standard_normal((n, py, w))).astype(plan.cdtype)  # noqa: E731
-    B, H, HX = cplx(b), cplx(b), cplx(1)
+    T, H, Rp, HX = cplx(b), cplx(b), cplx(1), cplx(1)
     c, mu_v = 1.7, 0.6
-    want = np.fft.irfft2((B.astype(np.complex128) - mu_v * np.conj(H) * HX) / c, s=(py, px))
+    H64 = H.astype(np.complex128)
+    want = np.fft.irfft2((np.conj(H64) * Rp + T - mu_v * np.conj(H64) * HX) / c, s=(py, px))
     assert plan.fuses_xstep
     out = cla.empty(rt.queue, shape, dtype)
-    plan.inverse_xstep(*(cla.to_device(rt.queue, a) for a in (B,)), out, cla.to_device(rt.queue, H),
-                       cla.to_device(rt.queue, HX), c, mu_v)
+    dev = lambda a: cla.to_device(rt.queue, a)  # noqa: E731
+    plan.inverse_xstep(dev(T), out, dev(H), dev(Rp), dev(HX), c, mu_v)
     err = np.linalg.norm(out.get() - want) / np.linalg.norm(want)
     assert err <= 2 * TOL[dtype], err
     slow = ClPlan(rt, shape, dtype, local_limit=0)
     assert not slow.fuses_xstep
     with pytest.raises(ValueError, match="fuses_xstep"):
-        slow.inverse_xstep(cla.to_device(rt.queue, B), out, cla.to_device(rt.queue, H), cla.to_device(rt.queue, HX), c, mu_v)
+        slow.inverse_xstep(dev(T), out, dev(H), dev(Rp), dev(HX), c, mu_v)

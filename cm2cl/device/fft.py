@@ -153,13 +153,14 @@ class FFTPlan:
         memory (cm2cl.device.fft_kernels.ClPlan.inverse_xstep)."""
         return self.backend == "cl" and self._cl.fuses_xstep
 
-    def inverse_xstep(self, src, dst, hs, hx, c, mu_v):
-        """dst (real) <- IFFT((src - mu_v conj(hs) hx) / c), normalised: the x step's last stage fused
-        into the inverse (only where :attr:`fuses_xstep`); src is overwritten."""
+    def inverse_xstep(self, src, dst, hs, hr, hx, c, mu_v):
+        """dst (real) <- IFFT((conj(hs) hr + src - mu_v conj(hs) hx) / c), normalised: the x step's last stage
+        fused into the inverse (only where :attr:`fuses_xstep`); hr, hx: one spectrum plane each; src is
+        overwritten."""
         self._check(src, self.spec_shape, self.cdtype, "ifft input")
         self._check(hs, self.spec_shape, self.cdtype, "PSF spectra")
         self._check(dst, self.real_shape, self.dtype, "ifft output")
-        self._cl.inverse_xstep(src, dst, hs, hx, c, mu_v)
+        self._cl.inverse_xstep(src, dst, hs, hr, hx, c, mu_v)
         return dst
 
     def inverse(self, src, dst):

@@ -265,10 +265,11 @@ class ClPlan:
         local memory); otherwise the solver runs xstep_solve before :meth:`inverse`."""
         return self.cols_local
 
-    def inverse_xstep(self, src, dst, hs, hx, c, mu_v):
-        """:meth:`inverse` of X_i = (B_i - mu_v conj(H_i) HX) / c for B = src (batch planes, overwritten),
-        H = hs (same shape), HX = hx (one spectrum plane): kernels/xstep.cl's xstep_solve, fused into
-        the column pass's loads (one read and one write of the spectra fewer)."""
+    def inverse_xstep(self, src, dst, hs, hr, hx, c, mu_v):
+        """:meth:`inverse` of X_i = (B_i - mu_v conj(H_i) HX) / c, B_i = conj(H_i) R + T_i, for T = src (batch
+        planes, overwritten), H = hs (same shape), R = hr and HX = hx (one spectrum plane each):
+        kernels/xstep.cl's xstep_solve, fused into the column pass's loads (one read and one write of the
+        spectra fewer)."""
         if not self.fuses_xstep:
             raise ValueError("inverse_xstep needs the column lines in local memory (fuses_xstep)")
         if self._k_cols_x is None:
@@ -276,7 +277,7 @@ class ClPlan:
         R = self.dtype.type
         g = (-(-self.w // (self.col_c * self.col_v)) * self.col_c, self.col_t, self.batch)
         self._k_cols_x(self.rt.queue, g, (self.col_c, self.col_t, 1), src.data, np.int32(self.w), np.int32(1),
-                       self.tw_col.data, hs.data, hx.data, R(mu_v), R(1.0 / c))
+                       self.tw_col.data, hs.data, hr.data, hx.data, R(mu_v), R(1.0 / c))
         return self._rows_inverse(src, dst)
 
     def forward(self, src, dst):

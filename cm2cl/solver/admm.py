@@ -311,10 +311,10 @@ class ADMMSolver:
         for i, part, j, n, a in self._each_slab(("spec", "hs"), ("g",)):
             plan = part.plan(n, self.backend)
             if plan.fuses_xstep and self.fuse_xstep:
-                plan.inverse_xstep(a["spec"], a["g"], a["hs"], part.planes["S"], c, mu_v)
+                plan.inverse_xstep(a["spec"], a["g"], a["hs"], part.planes["R"], part.planes["S"], c, mu_v)
                 continue
-            self._ew(part, "xstep_solve", -(-self.nfreq // part.cw), a["spec"].data, a["hs"].data, part.planes["S"].data,
-                     R(c), R(mu_v), I(n), nf)
+            self._ew(part, "xstep_solve", -(-self.nfreq // part.cw), a["spec"].data, a["hs"].data, part.planes["R"].data,
+                     part.planes["S"].data, R(c), R(mu_v), I(n), nf)
             plan.inverse(a["spec"], a["g"])
         self.parts[0].plan2d.inverse(p0["S"], p0["hx"])
 

@@ -90,12 +90,12 @@ def streamed_bytes_per_iteration(planes, padded_shape, dtype, backend, tv_iters)
 
 def iteration_bytes(nz, padded_shape, dtype, backend, tv_iters) -> int:
     """Device memory traffic of one iteration's kernels, each FFT counted as one read and one write:
-    rhs 6V; FFT V+S; x-step accumulate 3S and solve 3S; IFFT S+V; w split 4V; TV: residual 5V (6V the
-    first time) and dual step 7V per inner iteration; TV finish 7V (V: a real volume, S: a spectrum
-    volume). With cm2cl's FFT ("cl") the solve runs inside the IFFT's column pass, which then reads the
-    PSF spectra too: 2S less (ClPlan.inverse_xstep)."""
+    rhs 6V; FFT V+S; x-step accumulate 2S (reads only) and solve 3S; IFFT S+V; w split 4V; TV: residual
+    5V (6V the first time) and dual step 7V per inner iteration; TV finish 7V (V: a real volume, S: a
+    spectrum volume). With cm2cl's FFT ("cl") the solve runs inside the IFFT's column pass, which then
+    reads the PSF spectra too: 2S less (ClPlan.inverse_xstep)."""
     est = memory_estimate(nz, padded_shape, dtype, backend)
-    spectra = 6 if backend == "cl" else 8
+    spectra = 5 if backend == "cl" else 7
     return int((6 + 1 + 1 + 4 + 1 + 7 + 12 * tv_iters) * est["real_volume"] + spectra * est["psf_spectra"])
 
 
