@@ -61,6 +61,12 @@ inline real_t group_sum(real_t v, __local real_t *scratch) {
 #define split_rho(s, c, mu) fmin((mu) * (s), (c))
 /* (s, c, mu: reals or realv vectors alike) */
 
+/* The x step's right-hand side in the object domain, mu_u u - eta + mu_w w - rho, with w and rho from
+ * the w split's state s (c = l1 l1w[z], mu_s: as above); rhs_volume (xstep.cl) and tv_finish (tv.cl,
+ * for the next x step) both form it. */
+#define x_rhs(u, eta, s, mu_u, mu_w, c, mu_s) \
+    ((mu_u) * (u) - (eta) + (mu_w) * split_w(s, c, mu_s) - split_rho(s, c, mu_s))
+
 /* ---- Row kernels: the volume kernels of the iteration (stencils and update-and-reduce) ------------
  * A work-item handles VW neighbouring x as one vector, for a block of `rows` rows, and for each row
  * walks all planes of the slab: values of a plane that the next plane's differences need again (the

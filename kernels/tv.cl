@@ -74,11 +74,17 @@ __kernel void tv_dual_step(__global real_t *px, __global real_t *py, __global re
 }
 
 /* u' = z - tau div p and eta' = lambda_tv div p (tau = 0, TV off: u' = x, eta' = 0); z as tv_residual
- * stored it.  Reduces into slots slot0 + (0..3): ||x - u'||^2, ||u' - u||^2, ||u'||^2, ||eta'||^2. */
+ * stored it.  Reduces into slots slot0 + (0..3): ||x - u'||^2, ||u' - u||^2, ||u'||^2, ||eta'||^2.
+ * With `rhs`, also writes the next x step's right-hand side t = mu_u u' - eta' + mu_w w - rho (as
+ * rhs_volume in xstep.cl, w and rho from s with c = l1_s l1w[z] and mu_s) for the penalties mu_u, mu_w
+ * it is given: the solver uses it when they still hold at that x step, which then skips rhs_volume
+ * (reads u, s and p, writes t) for this kernel's extra read of s and write of t. */
 __kernel void tv_finish(__global real_t *u, __global const real_t *x, __global const real_t *z,
                         __global const real_t *px, __global const real_t *py, __global const real_t *pz,
                         __global const real_t *pz_prev, const int has_prev, const int prev_planes,
                         const int has_next, const real_t tv, const real_t tau, const real_t aw,
+                        __global real_t *t, __global const real_t *s, const int rhs, const real_t mu_u,
+                        const real_t mu_w, const real_t l1_s, __global const real_t *l1w, const real_t mu_s,
                         const int planes, const int ny, const int nx, const int rows,
                         __global real_t *partials, const int pstride, const int slot0) {
     int x0, cnt, y0, y1;
@@ -99,6 +105,7 @@ __kernel void tv_finish(__global real_t *u, __global const real_t *x, __global c
             }
             const realv pu = xv - un, du = un - load_row(u, i, cnt);
             store_row(un, u, i, cnt);
+            if (rhs) store_row(x_rhs(un, en, load_row(s, i, cnt), mu_u, mu_w, l1_s * l1w[zz], mu_s), t, i, cnt);
             a0 += lanes_below(pu * pu, cnt);
             a1 += lanes_below(du * du, cnt);
             a2 += lanes_below(un * un, cnt);

@@ -6,7 +6,9 @@
 
 /* Right-hand side in the object domain over one slab:  t = mu_u u - eta + mu_w w - rho,  with the duals
  * and w derived from the state the iteration keeps: eta = tv div p (tv.cl), w = max(s - c/mu_s, 0) and
- * rho = min(mu_s s, c) with c = l1_s l1w[z] (splits.cl); pz_prev: the previous slab of pz when has_prev. */
+ * rho = min(mu_s s, c) with c = l1_s l1w[z] (splits.cl); pz_prev: the previous slab of pz when has_prev.
+ * The solver needs it only where tv_finish's copy (made for the penalties of the iteration before)
+ * does not apply: the first iteration, and after the penalties change. */
 __kernel void rhs_volume(__global real_t *t, __global const real_t *u, __global const real_t *s,
                          __global const real_t *px, __global const real_t *py, __global const real_t *pz,
                          __global const real_t *pz_prev, const int has_prev, const int prev_planes,
@@ -26,10 +28,7 @@ __kernel void rhs_volume(__global real_t *t, __global const real_t *u, __global 
             if (tv > 0) {
                 eta = tv * div_step(px, py, pz, i, x0, cnt, y, z, planes, has_next, ny, nx, aw, &pzb);
             }
-            const real_t c = l1_s * l1w[z];
-            const realv si = load_row(s, i, cnt);
-            store_row(mu_u * load_row(u, i, cnt) - eta + mu_w * split_w(si, c, mu_s) - split_rho(si, c, mu_s),
-                      t, i, cnt);
+            store_row(x_rhs(load_row(u, i, cnt), eta, load_row(s, i, cnt), mu_u, mu_w, l1_s * l1w[z], mu_s), t, i, cnt);
         }
     }
 }

@@ -244,6 +244,47 @@ def test_plane_weighted_l1_matches_the_twin(rt):
     assert np.linalg.norm(r2.volume_padded - r1.volume_padded) > 1e-3 * np.linalg.norm(r1.volume_padded)
 
 
+class _Counted:
+    """A kernel that counts its launches."""
+
+    def __init__(self, k):
+        self.k, self.calls = k, 0
+
+    def __call__(self, *args, **kw):
+        self.calls += 1
+        return self.k(*args, **kw)
+
+    def __getattr__(self, name):
+        return getattr(self.k, name)
+
+
+@pytest.mark.parametrize("tv,penalty", [(1e-3, "adaptive"), (1e-3, "balance"), (0.0, "balance")])
+def test_rhs_made_by_tv_finish_gives_the_same_iterates(rt, tv, penalty):
+    """tv_finish makes the next x step's rhs for the penalties of its iteration; the x step uses it where
+    mu_u and mu_w still hold and runs rhs_volume only on the first iteration and after they changed.
+    Solves with and without that agree to float64 rounding (slabs: halos of pz), and with the reference;
+    "balance" changes the penalties on most iterations here, "adaptive" on none."""
+    if not rt.caps.fp64:
+        pytest.skip(f"device '{rt.caps.name}' has no fp64 support")
+    psf, _, y = bead_problem(4)
+    kw = dict(l1=1e-3, tv=tv, max_iter=25, tol=0, penalty=penalty)
+    out, calls = [], []
+    for early in (True, False):
+        s = ADMMSolver(psf, ADMMParams(**kw), dtype=np.float64, backend="cl", padded_shape=(64, 80), max_slab_planes=3)
+        s.rhs_in_tv_finish = early
+        s.parts[0].k["rhs_volume"] = counted = _Counted(s.parts[0].k["rhs_volume"])
+        rec = s.solve(y)
+        out.append(rec.volume_padded)
+        calls.append(counted.calls)
+    mus = list(zip(rec.history["mu_u"], rec.history["mu_w"]))
+    changed = sum(a != b for a, b in zip(mus[:-1], mus[1:]))
+    assert changed < 24 and (changed > 0) == (penalty == "balance")
+    assert calls == [2 * (1 + changed), 2 * 25]   # two slabs
+    r0 = ref.admm(y, psf, padded_shape=(64, 80), **kw)
+    assert np.linalg.norm(out[0] - out[1]) / np.linalg.norm(out[1]) < 1e-12
+    assert np.linalg.norm(out[0] - r0.volume_padded) / np.linalg.norm(r0.volume_padded) < 1e-10
+
+
 def test_fused_x_step_inverse_gives_the_same_iterates(rt):
     """With cm2cl's FFT the x step's last stage (xstep_solve) runs inside the inverse FFT's column pass;
     solves with and without that fusion agree to float64 rounding, and with the float64 reference."""

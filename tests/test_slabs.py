@@ -57,12 +57,17 @@ def test_streamed_slabs_equal_the_whole_solve(rt, dtype, overlap):
     # the device holds two planes of each volume (two sets of two when double-buffered), not seven
     assert streamed.info["device_bytes"] < (0.8 if overlap else 0.6) * whole.info["device_bytes"]
     # the traffic is what the memory model says (PSF spectra once at setup), plus the one-plane halos of
-    # the 4 slabs per iteration: the previous slab's pz for the x step and TV finish (3 each), the next
-    # slab's x for the w split (3), and per TV iteration the previous pz (3), the next residual (3) and
-    # each slab's first residual plane written back (4)
+    # the 4 slabs per iteration: the previous slab's pz for TV finish (3), the next slab's x for the w
+    # split (3), and per TV iteration the previous pz (3), the next residual (3) and each slab's first
+    # residual plane written back (4); where the x step makes its own rhs (the first iteration, and where
+    # the penalties mu_u, mu_w changed from the iteration before), 4V more in and pz's halo (3)
     moved = streamed.info["moved_bytes"]
-    model = 25 * streamed_bytes_per_iteration(7, (64, 80), dtype, "cl", 2) + memory_estimate(7, (64, 80), dtype, "cl")["psf_spectra"]
-    halos = 25 * (3 + 3 + 3 + 2 * (3 + 3 + 4)) * 64 * 80 * np.dtype(dtype).itemsize
+    mus = list(zip(streamed.history["mu_u"], streamed.history["mu_w"]))
+    own = 1 + sum(a != b for a, b in zip(mus[:-1], mus[1:]))
+    assert 1 < own < 25   # both paths ran
+    model = sum(streamed_bytes_per_iteration(7, (64, 80), dtype, "cl", 2, rhs_ready=r) * n
+                for r, n in ((True, 25 - own), (False, own))) + memory_estimate(7, (64, 80), dtype, "cl")["psf_spectra"]
+    halos = (25 * (3 + 3 + 2 * (3 + 3 + 4)) + 3 * own) * 64 * 80 * np.dtype(dtype).itemsize
     assert moved == model + halos, (moved, model, halos)
     close(streamed.volume, whole.volume, dtype)
     np.testing.assert_allclose(streamed.history["objective"], whole.history["objective"], rtol=1e-5)

@@ -8,7 +8,8 @@ S: one spectrum volume; the lean state of cm2cl/solver/admm.py):
 
     rhs_volume 6V (u, s, px, py, pz in; g out)        update_w 4V (x, previous x, s in; s out)
     tv_residual 6V the first time (x, p in; r, z out), 5V after (z, p in; r out)
-    tv_dual_step 7V (p, r in; p out)                   tv_finish 7V (u, x, z, p in; u out)
+    tv_dual_step 7V (p, r in; p out)                   tv_finish 9V (u, x, z, p, s in; u, next rhs out)
+    (rhs_volume runs only where tv_finish's rhs does not apply: the first iteration, changed penalties)
     xstep_accumulate 2S (spectra, PSF spectra in) xstep_solve 3S (spectra, PSF spectra in; out)
     FFT kernels of cm2cl's own backend: rows_r2c V + S, cols 2S, rows_c2r S + V; where xstep_solve runs
     inside the inverse's column pass (ADMMSolver.fuse_xstep), that pass also reads the PSF spectra (+S)
@@ -42,7 +43,7 @@ from cm2cl.solver.params import ADMMParams  # noqa: E402
 def bytes_model(tv_iters):
     """Bytes per call in units of (V, S), by kernel name."""
     return {"rhs_volume": (6, 0), "update_w": (4, 0), "tv_residual": ((6 + 5 * (tv_iters - 1)) / tv_iters, 0),
-            "tv_dual_step": (7, 0), "tv_finish": (7, 0), "xstep_accumulate": (0, 2), "xstep_solve": (0, 3),
+            "tv_dual_step": (7, 0), "tv_finish": (9, 0), "xstep_accumulate": (0, 2), "xstep_solve": (0, 3),
             "rows_r2c": (1, 1), "cols": (0, 2), "rows_c2r": (1, 1)}
 
 

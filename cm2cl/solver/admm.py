@@ -9,7 +9,7 @@ between host and device is one small buffer of reduced scalars per iteration.
 
 The lean state: per voxel the iteration keeps 7 real volumes (x, the previous x or scratch g, s, u and
 the TV dual p = (px, py, pz)) and 2 complex ones (the x spectra, the PSF spectra). w, rho and eta are
-not stored; every step that needs them derives them exactly (kernels: split_w, split_rho, div_at):
+not stored; every step that needs them derives them exactly (kernels: split_w, split_rho, div_step):
 
 * w split: s = x + rho_old / mu_w, the l1 prox's argument, so that w = max(s - c / mu_w, 0)
   (c = l1 l1w[z]) and rho = rho_old + mu_w (x - w) = min(mu_w s, c). The weight and penalty s was made
@@ -21,6 +21,10 @@ not stored; every step that needs them derives them exactly (kernels: split_w, s
   tau = tv / mu_u gives eta = tv div p (p as the last dual iterations left it; :attr:`ADMMSolver.tv_split`
   is the tv). z is stored in the x spectra's buffer while the TV prox runs (the spectra are not needed
   between the x step's inverse FFT and the next x step).
+* x step: its object-domain rhs mu_u u - eta + mu_w w - rho is made by tv_finish, which has u and eta
+  at hand, into g (free by then) for the penalties of its iteration; the next x step uses it where they
+  still hold (:attr:`ADMMSolver.rhs_for`) and otherwise makes it again (rhs_volume: the first iteration,
+  and after the penalty policy changed mu_u or mu_w).
 
 The float64 numpy twin is :func:`cm2cl.reference.admm` (tests and tools only).
 """
@@ -207,6 +211,11 @@ class ADMMSolver:
         #: run xstep_solve inside the inverse FFT's column pass where the FFT allows it (off: for tests
         #: and benchmarks of the unfused path)
         self.fuse_xstep = True
+        #: (mu_u, mu_w, l1, mu_s, tv) when g holds the x step's object-domain rhs that tv_finish made for
+        #: them (the next x step then skips rhs_volume), else None
+        self.rhs_for = None
+        #: let tv_finish make the next x step's rhs (off: for tests of the rhs_volume path)
+        self.rhs_in_tv_finish = True
 
     # ---- launch helpers --------------------------------------------------------------------
     def _ew(self, part, name, n, *args):
@@ -290,13 +299,18 @@ class ADMMSolver:
             Rh = p0["R"].get()
             for part in self.parts[1:]:
                 part.planes["R"].set(Rh)
-        for i, part, j, n, a in self._each_slab(("u", "s", "px", "py", "pz", "hs"), ("spec",), ("g",)):
+        # g already holds the rhs where tv_finish made it for these penalties (rhs_for), else rhs_volume
+        ready = self.rhs_for == (mu_u, mu_w, l1_s, mu_s, self.tv_split)
+        self.rhs_for = None   # g is the new iterate after this step
+        reads = ("g", "hs") if ready else ("u", "s", "px", "py", "pz", "hs")
+        for i, part, j, n, a in self._each_slab(reads, ("spec",), () if ready else ("g",)):
             pl = part.planes
-            prev, pn, hp = self._prev(i, j, "pz")
-            self._row_grid(part, "rhs_volume", a["g"].data, a["u"].data, a["s"].data, a["px"].data, a["py"].data,
-                       a["pz"].data, (prev if hp else a["pz"]).data, I(hp), I(pn), I(self._has_next(i, j)),
-                       R(mu_u), R(mu_w), R(self.tv_split), R(l1_s), part.l1w[j].data, R(mu_s), aw,
-                       I(n), I(ny), I(nx))
+            if not ready:
+                prev, pn, hp = self._prev(i, j, "pz")
+                self._row_grid(part, "rhs_volume", a["g"].data, a["u"].data, a["s"].data, a["px"].data,
+                               a["py"].data, a["pz"].data, (prev if hp else a["pz"]).data, I(hp), I(pn),
+                               I(self._has_next(i, j)), R(mu_u), R(mu_w), R(self.tv_split), R(l1_s),
+                               part.l1w[j].data, R(mu_s), aw, I(n), I(ny), I(nx))
             part.plan(n, self.backend).forward(a["g"], a["spec"])
             self._ew(part, "xstep_accumulate", -(-self.nfreq // part.cw), a["spec"].data, a["hs"].data, pl["R"].data,
                      pl["S"].data, pl["comp"].data, I(n), nf, I(j == 0))
@@ -373,6 +387,7 @@ class ADMMSolver:
         if name in DERIVED:
             raise InputError(f"set_volume: {name!r} is derived from the state (s, p), not stored")
         value = np.asarray(value)
+        self.rhs_for = None   # the state changed: the next x step makes its rhs from it
         for part in self.parts:
             for j, n, a in part.slabs(writes=(name,)):
                 z = part.z0 + part.bounds[j][0]
@@ -443,6 +458,7 @@ class ADMMSolver:
         p0, pl0 = self.parts[0], self.parts[0].planes
         self._fill(("x", "u", "s", "v", "xi", "px", "py", "pz"))
         self.l1_split = (0.0, 1.0)   # s = w >= 0, rho = 0
+        self.rhs_for = None
         if x0 is not None:
             start = self._start_volume(x0, y_scale / self.psf_scale)
             for name in ("x", "u", "s"):
@@ -494,12 +510,18 @@ class ADMMSolver:
                         gn, hn = self._next(i, j, "g")
                         self._row_grid(part, "tv_dual_step", *grid(a), a["g"].data, (gn if hn else a["g"]).data,
                                    I(hn), step, aw, iso, I(n), I(ny), I(nx))
-            for i, part, j, n, a in self._each_slab(("u", "x", "px", "py", "pz") + (("spec",) if tau > 0 else ()),
-                                                    ("u",)):
+            # ---- and the next x step's rhs, for the penalties of this iteration (used if they still hold)
+            rhs = self.rhs_in_tv_finish
+            l1_s, mu_s = self.l1_split
+            for i, part, j, n, a in self._each_slab(("u", "x", "px", "py", "pz") + (("spec",) if tau > 0 else ())
+                                                    + (("s",) if rhs else ()), ("u",) + (("g",) if rhs else ())):
                 prev, pn, hp = self._prev(i, j, "pz")
                 self._rows(part, "tv_finish", RU2, a["u"].data, a["x"].data,
                           a["spec" if tau > 0 else "x"].data, *grid(a), (prev if hp else a["pz"]).data, I(hp), I(pn),
-                          I(self._has_next(i, j)), R(ctl.tv), R(tau), aw, I(n), I(ny), I(nx))
+                          I(self._has_next(i, j)), R(ctl.tv), R(tau), aw, a["g" if rhs else "u"].data,
+                          a["s" if rhs else "u"].data, I(rhs),
+                          R(mu_u), R(mu_w), R(l1_s), part.l1w[j].data, R(mu_s), I(n), I(ny), I(nx))
+            self.rhs_for = (mu_u, mu_w, l1_s, mu_s, self.tv_split) if rhs else None
             # ---- the scalars of this iteration: one small read per part, added in float64
             s = np.zeros(NSLOTS)
             for part in self.parts:
