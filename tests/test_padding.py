@@ -64,3 +64,24 @@ def test_support_padding_reconstructs_like_full_padding(rt):
     assert b.volume.shape == a.volume.shape
     assert np.linalg.norm(b.volume - a.volume) <= 0.05 * np.linalg.norm(a.volume)
     assert np.unravel_index(b.volume.argmax(), b.volume.shape) == np.unravel_index(a.volume.argmax(), a.volume.shape)
+
+
+def test_padded_grid_avoids_cache_aliasing_strides_and_partial_row_vectors():
+    """choose_padded_shape: large planes get no voxel count with a power of two above 2^12 (a plane of a
+    multiple of 64 KiB in float32 maps every plane to the same cache sets) and rows of a multiple of 8;
+    grids that already are so stay; reikna keeps its powers of two; small grids keep good_size."""
+    from cm2cl.device import fft
+    from cm2cl.solver.forward import FAST_GRID_MAX_POW2, choose_padded_shape, fast_grid
+
+    assert choose_padded_shape((324, 432), "cl") == (648, 864)        # the demo
+    assert choose_padded_shape((972, 1296), "cl") == (1944, 2592)     # the fig3 scene
+    assert choose_padded_shape((256, 256), "cl") == (540, 512)        # not 512 x 512 (2^18 voxels)
+    assert choose_padded_shape((256, 256), "reikna") == (512, 512)
+    assert choose_padded_shape((32, 40), "cl") == (64, 80)            # small: plain good sizes
+    for need in [(511, 511), (1023, 1279), (2047, 2047), (777, 1001), (1943, 2591), (300, 4000)]:
+        py, px = fast_grid(need, "cl")
+        assert py >= need[0] and px >= need[1]
+        assert fft.good_size(py, "cl") == py and fft.good_size(px, "cl") == px
+        assert (py * px) & -(py * px) <= FAST_GRID_MAX_POW2 and px % 8 == 0, (need, py, px)
+        # the price: a few per cent more voxels than the plain good sizes
+        assert py * px <= 1.1 * fft.good_size(need[0], "cl") * fft.good_size(need[1], "cl"), (need, py, px)
