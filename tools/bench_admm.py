@@ -31,8 +31,10 @@ from cm2cl.solver.params import ADMMParams  # noqa: E402
 #: (cm2cl.solver.control), and then the x step makes its own rhs (rhs_volume) instead of taking the one
 #: TV finish made; a solve of a hundred iterations or more spends most of them past that
 SKIP = 10
-#: device solves per row; the fastest one's median counts (the machine's slow phases last seconds)
-RUNS = 3
+#: device solves per row, each right after a copy-rate measurement: the row gives the median seconds
+#: and the median of the per-solve ratios to the floor (this machine drifts by up to 1.5x between minutes,
+#: copies and kernels alike, so a ratio of two measurements taken together is the steadier figure)
+RUNS = 5
 
 
 def per_iteration(rec, skip: int = 0) -> float:
@@ -79,8 +81,15 @@ def main(argv=None):
         for backend in fft.available_backends():
             s = ADMMSolver(psf, p, backend=backend)
             s.solve(y)  # warm-up: kernel builds, FFT plans
-            bw = copy_bandwidth(rt)   # the copy rate of the moment (this machine drifts by up to 1.5x)
-            dev = min(per_iteration(s.solve(y), SKIP) for _ in range(RUNS))
+            nbytes = iteration_bytes(nz, s.P, np.float32, backend, p.tv_iters)
+            runs = []
+            for _ in range(RUNS):
+                bw = copy_bandwidth(rt)
+                runs.append((per_iteration(s.solve(y), SKIP), bw))
+            dev = float(np.median([t for t, _ in runs]))
+            ratio = float(np.median([t * bw / nbytes for t, bw in runs]))
+            bw = float(np.median([b for _, b in runs]))
+            bws.extend(b for _, b in runs)
             if s.P not in numpy_s:
                 numpy_s[s.P] = per_iteration(reference.admm(y, psf, p, padded_shape=s.P, dtype=np.float32, workers=-1),
                                              SKIP)
@@ -89,11 +98,10 @@ def main(argv=None):
             V = nz * s.P[0] * s.P[1] * 4
             spec_plane = s.parts[0].spec_plane
             target = 7 * V + nz * int(np.prod(spec_plane)) * 2 * 4   # issue 10: <= 7 volumes + PSF spectra
-            floor = iteration_bytes(nz, s.P, np.float32, backend, p.tv_iters) / bw
-            bws.append(bw)
+            floor = nbytes / bw
             rows.append([f"{my} x {mx} x {nz}", backend, f"{s.P[0]} x {s.P[1]}", f"{dev:.3f}", f"{npy:.3f}",
                          f"{npy / dev:.2f}", f"{s.allocated_bytes / 2**20:.0f}", f"{target / 2**20:.0f}",
-                         f"{floor * 1e3:.1f}", f"{dev / floor:.1f}", f"{fft_t * 1e3:.0f} ({fft_t / dev:.0%})"])
+                         f"{floor * 1e3:.1f}", f"{ratio:.1f}", f"{fft_t * 1e3:.0f} ({fft_t / dev:.0%})"])
             print(" | ".join(rows[-1]), flush=True)
     head = ["sensor x planes", "FFT backend", "padded grid", "device s/iter", "numpy s/iter", "speed-up",
             "device MiB", "target MiB (7 V + PSF spectra)", "bandwidth floor ms", "x floor",
@@ -101,8 +109,9 @@ def main(argv=None):
     text = (f"Device: **{rt.caps.name}** ({rt.caps.platform}), {os.cpu_count()} host cores; float32, "
             f"tv_iters={p.tv_iters}; median time between iterations {SKIP + 1}-{SKIP + a.iters} (past the "
             f"adaptive penalties' first {SKIP} iterations, where they may change on each) after a warm-up run, "
-            f"the fastest of {RUNS} device solves (numpy: one); the floor from a copy kernel's rate measured just "
-            f"before each row's solves ({min(bws) / 1e9:.1f}-{max(bws) / 1e9:.1f} GB/s); 'device MiB' counts the buffers cm2cl allocates (FFT libraries may add "
+            f"the median of {RUNS} device solves (numpy: one); each solve right after a copy kernel's rate "
+            f"({min(bws) / 1e9:.1f}-{max(bws) / 1e9:.1f} GB/s in this run): 'bandwidth floor ms' at the median "
+            f"rate, 'x floor' the median of the solves' own ratios; 'device MiB' counts the buffers cm2cl allocates (FFT libraries may add "
             f"scratch). numpy = `cm2cl.reference.admm(dtype=float32, workers=-1)`. "
             f"`python tools/bench_admm.py`\n\n" + markdown_table(head, rows))
     print(text)
