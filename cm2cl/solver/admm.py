@@ -59,8 +59,11 @@ DERIVED = ("w", "rho", "eta")
 log = logging.getLogger(__name__)
 #: partials per sum of the fused update-and-reduce kernels at most (row kernels, kernels/common.cl:
 #: a work-item per VW x of `rows` rows, all planes): enough work-items for a GPU's cores, few enough
-#: that reduce_partials' pass stays small next to a volume's
-PARTIALS = {"CPU": 2**14, "GPU": 2**18}
+#: that reduce_partials' pass stays small next to a volume's. Also the CPUs' cap: with 2^14 the fig3
+#: grid (1944 x 2592, 21 planes) took 39 rows per work-item, and a work-item walking 39 rows x 21
+#: planes at a plane's stride ran tv_finish at 0.23x the copy rate (519 ms) and update_w at 0.33x
+#: (162 ms); with 2^18 (4 rows) 178 and 83 ms, reduce_partials 0.6 -> 5.1 ms (PoCL, 2 cores)
+PARTIALS = 2**18
 #: elements per work-item of the row kernels at least (where the columns are that long): the partials
 #: then take at most 1/32 of the volume they sum (the memory model counts on it)
 ROW_ELEMENTS = NSLOTS * 32
@@ -233,8 +236,7 @@ class ADMMSolver:
         ny, nx = self.P
         nxb = -(-nx // vw)
         if rows is None:
-            cap = PARTIALS.get(part.rt.caps.kind, PARTIALS["GPU"])
-            rows = min(ny, max(-(-ROW_ELEMENTS // (vw * part.max_planes)), -(-nxb * ny // cap)))
+            rows = min(ny, max(-(-ROW_ELEMENTS // (vw * part.max_planes)), -(-nxb * ny // PARTIALS)))
         part.vw, part.rows = vw, int(rows)
         part.cw = max(vw // 2, 1)   # complex values per work-item of xstep_accumulate, xstep_solve
         part.k.update({n: kernels.kernel(part.rt, f, n, self.dtype, {"VW": vw}) for f, n in ROW_KERNELS})
