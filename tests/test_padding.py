@@ -67,7 +67,7 @@ def test_support_padding_reconstructs_like_full_padding(rt):
 
 
 def test_padded_grid_avoids_cache_aliasing_strides_and_partial_row_vectors():
-    """choose_padded_shape: large planes get no voxel count with a power of two above 2^12 (a plane of a
+    """choose_padded_shape: large planes get no voxel count with a power of two above 2^13 (a plane of a
     multiple of 64 KiB in float32 maps every plane to the same cache sets) and rows of a multiple of 8;
     grids that already are so stay; reikna keeps its powers of two; small grids keep good_size."""
     from cm2cl.device import fft

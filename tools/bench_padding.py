@@ -27,7 +27,8 @@ from cm2cl.solver.params import ADMMParams  # noqa: E402
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--size", default="256x256x16")
-    ap.add_argument("--grids", nargs="+", default=["512x512", "auto", "512x640", "512x648", "520x540", "540x520"])
+    ap.add_argument("--grids", nargs="+", default=["512x512", "auto", "512x560", "576x512", "512x640", "512x648",
+                                                   "520x540", "540x520"])
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--iters", type=int, default=8)
     a = ap.parse_args(argv)

@@ -37,8 +37,9 @@ def choose_padded_shape(sensor_shape, backend: str):
 
 #: planes of at least this many voxels avoid the strides that fast_grid avoids
 FAST_GRID_MIN_PLANE = 1 << 16
-#: ... the largest power of two a plane's voxel count may hold (float32: 16 KiB)
-FAST_GRID_MAX_POW2 = 1 << 12
+#: ... the largest power of two a plane's voxel count may hold (float32: 32 KiB; measured fine at 2^13,
+#: slower at 2^15 and above)
+FAST_GRID_MAX_POW2 = 1 << 13
 #: ... and the multiple of which a row's length is (the CPU row kernels' 8 float32 / 4 float64, 32 bytes)
 FAST_GRID_ROW_MULTIPLE = 8
 
@@ -50,9 +51,10 @@ def fast_grid(need, backend: str) -> tuple[int, int]:
     axis whose plane holds no power of two above FAST_GRID_MAX_POW2 and whose rows are a multiple of
     FAST_GRID_ROW_MULTIPLE long. Why: the volume kernels walk the planes of a slab at a stride of one
     plane; a plane of a multiple of 64 KiB puts every plane in the same sets of the cache (measured on
-    PoCL, a 256 x 256 sensor, 16 planes, ms per ADMM iteration: 512 x 512 106 / 106, 540 x 512 68 / 64;
-    512 x 640 90 / 100, 512 x 648 74 / 72), and rows that are not whole vectors cost the row kernels a
-    partial vector and unaligned loads on every row (540 x 520 78 / 91 against 520 x 540 97 / 102)."""
+    PoCL, a 256 x 256 sensor, 16 planes, ns per voxel and iteration, docs/benchmarks.md "Padded grid
+    choice": 512 x 512 (2^18) 22.2, 512 x 640 (2^16) 16.4, 576 x 512 (2^15) 13.8, 512 x 560 (2^13) 12.8,
+    540 x 512 (2^11) 12.2), and rows that are not whole vectors cost the row kernels a partial vector and
+    unaligned loads on every row (540 x 520 15.3 against 520 x 540 19.6)."""
     backend = fft.resolve_backend(backend)
     ny, nx = (max(int(n), 1) for n in need)
     first = (fft.good_size(ny, backend), fft.good_size(nx, backend))
