@@ -92,3 +92,24 @@ def test_solver_keeps_seven_real_volumes_per_plane(rt, dtype):
                     max_slab_planes=2)
     assert st.host_bytes == nz * est["volumes_per_plane"]
     assert sum(a.nbytes for a in st.parts[0].slots[0].values()) == 2 * est["volumes_per_plane"]
+
+
+def test_lean_layout_keeps_seven_real_volumes_and_the_psf_spectra_per_plane(rt, dtype):
+    """The lean layout (cm2cl.solver.parts.LEAN_SCRATCH): per depth plane the device holds the 7 real
+    volumes and the PSF spectra, nothing else; the x spectra are one slab, whatever the depth; the memory
+    model's figures are what the part allocates."""
+    psf, _, _ = bead_problem(3)
+    nz = psf.shape[0]
+    item = np.dtype(dtype).itemsize
+    spec = int(np.prod(spectrum_shape(P, "cl"))) * 2 * item
+    s = ADMMSolver(psf.astype(dtype), ADMMParams(), dtype=dtype, backend="cl", padded_shape=P, lean=True,
+                   max_slab_planes=1)
+    (part,) = s.parts
+    assert part.lean and s.lean and set(part.vol) == set(REAL) | {"hs"} and set(part.scratch) == {"spec"}
+    assert sum(v.nbytes for v in part.vol.values()) == nz * (7 * P[0] * P[1] * item + spec)
+    assert part.scratch["spec"].nbytes == spec        # one slab of one plane
+    est = memory_estimate(nz, P, dtype, "cl", lean_slab=1)
+    assert s.memory == est and est["volumes_per_plane"] == 7 * P[0] * P[1] * item + spec
+    assert 0 <= part.device_bytes - nz * est["volumes_per_plane"] <= est["fixed"]
+    whole = memory_estimate(nz, P, dtype, "cl")
+    assert whole["total"] - est["total"] == (nz - 1) * spec - P[0] * P[1] * item

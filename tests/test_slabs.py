@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from cm2cl import reconstruct
+from cm2cl.solver import memory
 from cm2cl.solver.memory import memory_estimate, plan_layout, streamed_bytes_per_iteration
 from cm2cl.errors import DeviceError
 
@@ -48,8 +49,8 @@ def close(a, b, dtype):
 def test_streamed_slabs_equal_the_whole_solve(rt, dtype, overlap):
     psf, y, kw = problem(dtype=dtype)
     whole = reconstruct(y, psf, dtype=dtype, device=rt, **kw)
-    assert whole.info["layout"] == [{"device": rt.caps.name, "planes": [0, 7], "streamed": False, "slab_planes": 7,
-                                     "overlap": False}]
+    assert whole.info["layout"] == [{"device": rt.caps.name, "planes": [0, 7], "streamed": False, "lean": False,
+                                     "slab_planes": 7, "overlap": False}]
     streamed = reconstruct(y, psf, dtype=dtype, device=rt, stream=True, max_slab_planes=2, overlap=overlap, **kw)
     lay = streamed.info["layout"]
     assert lay[0]["streamed"] and lay[0]["slab_planes"] == 2 and streamed.info["slabs"] == 4
@@ -84,6 +85,43 @@ def test_slabs_over_two_devices_equal_the_whole_solve(rt, subdevices):
     both = reconstruct(y, psf, devices=list(subdevices), stream=True, max_slab_planes=2, **kw)
     assert all(p["streamed"] for p in both.info["layout"])
     close(both.volume, whole.volume, np.float32)
+
+
+def test_lean_layout_equals_the_whole_solve(rt, dtype, monkeypatch):
+    """The lean layout (one slab of x spectra: the x step transforms each slab's rhs twice, the TV prox
+    keeps z in g and its residual in that slab, the next slab's first residual plane in r_next) computes
+    the whole solve's iterates in less memory, on one device in 4 slabs and over two parts; with r_next
+    left stale (TV's axial step across the slab borders wrong) it does not."""
+    from cm2cl.solver.parts import Part
+
+    psf, y, kw = problem(dtype=dtype)
+    whole = reconstruct(y, psf, dtype=dtype, device=rt, **kw)
+    lean = reconstruct(y, psf, dtype=dtype, device=rt, lean=True, **kw)
+    lay = lean.info["layout"]
+    assert lay[0]["lean"] and not lay[0]["streamed"] and lay[0]["slab_planes"] == 2 and lean.info["slabs"] == 4
+    est = memory_estimate(7, (64, 80), dtype, "cl")
+    # one spectrum volume less, but for its one slab of two planes and the plane r_next
+    saved = whole.info["device_bytes"] - lean.info["device_bytes"]
+    assert saved >= est["psf_spectra"] * 5 / 7 - 64 * 80 * np.dtype(dtype).itemsize, (saved, est["psf_spectra"])
+    close(lean.volume, whole.volume, dtype)
+    np.testing.assert_allclose(lean.history["objective"], whole.history["objective"], rtol=1e-6)
+    one = reconstruct(y, psf, dtype=dtype, device=rt, lean=True, max_slab_planes=1, **kw)
+    assert one.info["slabs"] == 7
+    close(one.volume, whole.volume, dtype)
+    monkeypatch.setattr(Part, "keep_first_plane", lambda self, arr, plane: None)
+    stale = reconstruct(y, psf, dtype=dtype, device=rt, lean=True, **kw)
+    err = np.linalg.norm(stale.volume - whole.volume) / np.linalg.norm(whole.volume)
+    assert err > 1e-3, err
+
+
+def test_lean_parts_over_two_devices_equal_the_whole_solve(rt, subdevices):
+    """Lean parts on two devices: the residual plane across the device border comes from the next
+    part's r_next (its slab 0, visited last)."""
+    psf, y, kw = problem()
+    whole = reconstruct(y, psf, device=rt, **kw)
+    two = reconstruct(y, psf, devices=list(subdevices), lean=True, **kw)
+    assert all(p["lean"] and not p["streamed"] for p in two.info["layout"]) and len(two.info["layout"]) == 2
+    close(two.volume, whole.volume, np.float32)
 
 
 def test_halos_matter(rt, subdevices, monkeypatch):
@@ -125,6 +163,38 @@ def test_planner_fits_the_memory_it_is_given(rt):
         plan_layout(nz, P, np.float32, "cl", [rt], max_memory=est["fixed"])
 
 
+def test_planner_goes_lean_before_it_streams(rt):
+    """Between what the lean state and the whole state need, the planner keeps the planes resident and
+    lean (7 real volumes and the PSF spectra per plane, one slab of x spectra); below it, it streams;
+    ``lean`` forces or forbids it."""
+    nz, P = 40, (640, 800)
+    est = memory_estimate(nz, P, np.float32, "cl")
+    slab = memory.LEAN_SLAB_PLANES
+    lean_est = memory_estimate(nz, P, np.float32, "cl", lean_slab=slab)
+    item = 4
+    real, spec = P[0] * P[1] * item, P[0] * (P[1] // 2 + 1) * 2 * item
+    assert est["per_plane"] - lean_est["per_plane"] == spec                  # one spectrum plane less per plane
+    assert lean_est["volumes_per_plane"] == 7 * real + spec                  # 7 real volumes + the PSF spectra
+    assert lean_est["fixed"] - est["fixed"] == slab * spec + real            # one slab of spectra, r_next
+    cap = (est["total"] + lean_est["total"]) // 2
+    (lp,) = plan_layout(nz, P, np.float32, "cl", [rt], max_memory=cap)
+    assert lp.lean and not lp.streamed and lp.slab_planes == slab and lp.device_bytes == lean_est["total"] <= cap
+    (lp,) = plan_layout(nz, P, np.float32, "cl", [rt], max_memory=cap, lean=False)
+    assert lp.streamed and not lp.lean
+    (lp,) = plan_layout(nz, P, np.float32, "cl", [rt], max_memory=lean_est["total"] - 1)
+    assert lp.streamed and not lp.lean
+    (lp,) = plan_layout(nz, P, np.float32, "cl", [rt], max_memory=est["total"] + 1)
+    assert not lp.lean and not lp.streamed
+    (lp,) = plan_layout(nz, P, np.float32, "cl", [rt], max_memory=est["total"] + 1, lean=True)
+    assert lp.lean and lp.device_bytes == lean_est["total"]
+    (lp,) = plan_layout(nz, P, np.float32, "cl", [rt], max_memory=est["total"] + 1, lean=True, max_slab_planes=1)
+    assert lp.lean and lp.slab_planes == 1
+    with pytest.raises(DeviceError, match=f"need {lean_est['total'] / 2**30:.2f} GiB per device"):
+        plan_layout(nz, P, np.float32, "cl", [rt], max_memory=lean_est["total"] - 1, stream=False)
+    with pytest.raises(ValueError, match="lean: expected"):
+        plan_layout(nz, P, np.float32, "cl", [rt], lean="yes")
+
+
 def test_cli_streams_under_a_memory_cap_and_plans_it(rt, tmp_path, capsys):
     """`--max-memory` below the whole solve: the dry run shows streamed slabs and the traffic, the run
     streams them and writes the same volume as the run that keeps them on the device; a cap that holds
@@ -159,6 +229,16 @@ def test_cli_streams_under_a_memory_cap_and_plans_it(rt, tmp_path, capsys):
     assert "too large even streamed" in capsys.readouterr().err
     assert main(base + ["-o", str(tmp_path / "c.ome.tif"), "--max-memory", cap, "--stream", "never"]) == 2
     assert "too large to keep on the device" in capsys.readouterr().err
+    # between the lean and the whole state's needs: resident and lean, the same volume
+    lean_cap = str((est["total"] + memory_estimate(7, (64, 80), np.float32, "cl", lean_slab=2)["total"]) // 2)
+    assert main(base + ["-o", str(tmp_path / "d.ome.tif"), "--max-memory", lean_cap, "--dry-run"]) == 0
+    assert "planes 0..6, resident, lean (x spectra in slabs of 2 planes)" in capsys.readouterr().out
+    assert main(base + ["-o", str(tmp_path / "d.ome.tif"), "--max-memory", lean_cap]) == 0
+    assert "resident, lean (x spectra in slabs of 2)" in capsys.readouterr().out
+    np.testing.assert_allclose(io.read_tiff(tmp_path / "d.ome.tif")[0], b, rtol=0, atol=1e-5 * b.max())
+    assert main(base + ["-o", str(tmp_path / "c.ome.tif"), "--max-memory", lean_cap, "--lean", "never",
+                        "--dry-run"]) == 0
+    assert "streamed in slabs" in capsys.readouterr().out
     assert main(base + ["-o", str(tmp_path / "c.ome.tif"), "--host-memory", "1K"]) == 2
     assert "MiB allowed (--host-memory)" in capsys.readouterr().err
     assert not (tmp_path / "c.ome.tif").exists()

@@ -83,6 +83,10 @@ def register(sub):
     g.add_argument("--stream", choices=["auto", "always", "never"], default="auto",
                    help="stream depth slabs through the device from host memory: when the planes do not fit "
                         "(auto, default), always, or never (refuse a problem that does not fit)")
+    g.add_argument("--lean", choices=["auto", "always", "never"], default="auto",
+                   help="keep the planes on the device with one slab of x spectra instead of a volume of them "
+                        "(about 1/8 less memory, one more FFT per iteration): when the whole state does not fit "
+                        "(auto, default), always, or never")
     g.add_argument("--tile", type=int, nargs=2, metavar=("TY", "TX"), default=None,
                    help="single frame: solve lateral tiles of about TY x TX pixels, each with a halo of measurement "
                         "around it, and blend them (approximate; for a PSF small against the field)")
@@ -149,7 +153,8 @@ def _layout(args, nz, sensor, dt, backend):
     from ..solver.memory import plan_layout
     rts = [get_runtime(d) for d in devices_arg(args.device)]
     P = choose_padded_shape(sensor, backend)
-    return P, plan_layout(nz, P, dt, backend, rts, max_memory=args.max_memory, stream=_STREAM[args.stream])
+    return P, plan_layout(nz, P, dt, backend, rts, max_memory=args.max_memory, stream=_STREAM[args.stream],
+                          lean=_STREAM[args.lean])
 
 
 def _offset(text: str, option: str = "--offset"):
@@ -300,7 +305,8 @@ def command(args) -> int:
             else:
                 rec = reconstruct(y, h, dtype=dt, backend=args.backend, device=devs[0],
                                   devices=devs if len(devs) > 1 else None, max_memory=args.max_memory,
-                                  stream=_STREAM[args.stream], weights=weights, padding=args.padding,
+                                  stream=_STREAM[args.stream], lean=_STREAM[args.lean], weights=weights,
+                                  padding=args.padding,
                                   callback=progress, voxel_size_um=vs, depths_um=depths, **params)
         finally:
             progress.close()
@@ -407,7 +413,8 @@ def _plan(args) -> int:
     moved = 0
     for lp in layout:
         how = (f"streamed in slabs of {lp.slab_planes} planes{' (double-buffered)' if lp.overlap else ''} from "
-               f"{lp.host_bytes / 2**30:.2f} GiB of host memory" if lp.streamed else "resident")
+               f"{lp.host_bytes / 2**30:.2f} GiB of host memory" if lp.streamed else
+               f"resident, lean (x spectra in slabs of {lp.slab_planes} planes)" if lp.lean else "resident")
         if lp.streamed:
             moved += streamed_bytes_per_iteration(lp.z1 - lp.z0, P, dt, backend, args.tv_iters)
         print(f"  device {lp.rt.caps.name} (#{lp.rt.caps.index}): planes {lp.z0}..{lp.z1 - 1}, {how}; "
@@ -502,14 +509,15 @@ def _report(out, outset, rec, how, vol):
           f"objective {last['objective']:.4e}, {last['seconds']:.1f} s on {info['device']}; "
           f"log: {outset.sidecars['log'].name}, {outset.sidecars['record'].name}")
     lay = info.get("layout") or []
-    if len(lay) > 1 or any(p["streamed"] for p in lay):
+    if len(lay) > 1 or any(p["streamed"] or p.get("lean") for p in lay):
         import resource
 
         rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024   # Linux: KiB
         print("  planes: " + "; ".join(
             f"{p['planes'][0]}..{p['planes'][1] - 1} on {p['device']}"
             + (f" streamed in slabs of {p['slab_planes']}{' (double-buffered)' if p.get('overlap') else ''}"
-               if p["streamed"] else " resident") for p in lay)
+               if p["streamed"] else f" resident, lean (x spectra in slabs of {p['slab_planes']})" if p.get("lean")
+               else " resident") for p in lay)
             + f"; {info['moved_bytes'] / 1e9:.2f} GB moved between host and devices, "
               f"{info['device_bytes'] / 2**30:.2f} GiB on the devices, peak host RSS {rss / 2**30:.2f} GiB")
     px = info.get("pixels") or {}

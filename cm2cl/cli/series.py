@@ -88,7 +88,7 @@ def command(args) -> int:
             get_runtime(d).check_dtype(dt)
     from .reconstruct import _STREAM
 
-    solver_kw = {"max_memory": args.max_memory, "stream": _STREAM[args.stream]}
+    solver_kw = {"max_memory": args.max_memory, "stream": _STREAM[args.stream], "lean": _STREAM[args.lean]}
     prep = {"offset": off, "psf_offset": psf_off, "bin": args.bin, "padding": args.padding,
             "warm_start": bool(args.warm_start)}
     if args.padding == "support":   # one grid for every frame, from the PSF stack's measured support

@@ -62,7 +62,7 @@ def _solver(key, psf, params, dtype, backend, device, solver_kw):
 
 def solve_frame(key, psf, params_dict, dtype, backend, y, device=None, solver_kw=None, x0=None):
     """One frame on this process's solver for (key, device): (volume, info). Runs on Dask workers too.
-    ``solver_kw``: ADMMSolver's layout options (padded_shape, max_memory, stream); ``x0`` a warm start."""
+    ``solver_kw``: ADMMSolver's layout options (padded_shape, max_memory, stream, lean); ``x0`` a warm start."""
     params = ADMMParams.from_kwargs(**params_dict)
     solver, lock = _solver(key, psf, params, np.dtype(dtype), backend, device, solver_kw)
     with lock:

@@ -26,6 +26,15 @@ not stored; every step that needs them derives them exactly (kernels: split_w, s
   still hold (:attr:`ADMMSolver.rhs_for`) and otherwise makes it again (rhs_volume: the first iteration,
   and after the penalty policy changed mu_u or mu_w).
 
+The lean layout (``lean``, :func:`cm2cl.solver.memory.plan_layout`'s choice where the whole state does
+not fit): the x spectra are one slab (of LEAN_SLAB_PLANES planes) per part, not a volume, so each plane
+holds the 7 real volumes and its PSF spectra only. The x step transforms each slab's rhs (in g) once for
+the spectral sum and again for the solve, whose inverse writes the new x over it; the TV prox keeps z in
+g (free since the w split) and its residual in the slab of spectra, the slabs visited last first, and
+the first residual plane of the slab just visited in the plane ``r_next`` for the dual step of the slab
+before it; TV finish reads z from g and writes the rhs over it, element by element. Same iterates, one
+more forward FFT per iteration.
+
 The float64 numpy twin is :func:`cm2cl.reference.admm` (tests and tools only).
 """
 
@@ -116,7 +125,7 @@ class ADMMSolver:
 
     def __init__(self, psf, params: ADMMParams, *, dtype=np.float32, backend="auto", device=None,
                  padded_shape=None, max_slab_planes=None, devices=None, max_memory=None, stream="auto",
-                 overlap="auto"):
+                 overlap="auto", lean="auto"):
         psf = validate.psf_stack(psf, "psf")
         # a first normalisation in float64 on the host, so that no input scale over- or underflows
         # in float32 on the device: sum_i (sum |h_i|)^2 bounds max_k sum_i |H_i(k)|^2 from above
@@ -149,8 +158,9 @@ class ADMMSolver:
         scratch = fft_scratch_per_plane(rt, P, self.dtype, self.backend)
         self.layout = plan_layout(self.nz, P, self.dtype, self.backend, rts, max_memory=max_memory,
                                   stream=stream, max_slab_planes=max_slab_planes, scratch_per_plane=scratch,
-                                  overlap=overlap)
-        self.memory = memory_estimate(self.nz, P, self.dtype, self.backend, scratch)
+                                  overlap=overlap, lean=lean)
+        self.memory = memory_estimate(self.nz, P, self.dtype, self.backend, scratch,
+                                      lean_slab=self.layout[0].slab_planes if self.layout[0].lean else None)
         self.cdtype = complex_dtype(self.dtype)
         spec_plane = get_plan(rt, P, 1, self.dtype, self.backend).spec_shape[1:]
         self.nfreq = int(np.prod(spec_plane))
@@ -158,8 +168,10 @@ class ADMMSolver:
         oy, ox = self.offsets
         self.crop = (slice(oy, oy + self.M[0]), slice(ox, ox + self.M[1]))
         self.parts = [Part(lp.rt, lp.z0, lp.z1, P, spec_plane, self.dtype, self.cdtype,
-                           slab_planes=lp.slab_planes, streamed=lp.streamed, overlap=lp.overlap)
+                           slab_planes=lp.slab_planes, streamed=lp.streamed, overlap=lp.overlap, lean=lp.lean)
                       for lp in self.layout]
+        #: lean layout (the planner's choice, all parts alike): one slab of spectra per part
+        self.lean = any(part.lean for part in self.parts)
         names = [("fft_conv.cl", "spectral_power"), ("xstep.cl", "rhs_volume"), ("xstep.cl", "rhs_plane"),
                  ("xstep.cl", "xstep_accumulate"), ("xstep.cl", "xstep_hx"), ("xstep.cl", "xstep_solve"),
                  ("splits.cl", "update_w"), ("splits.cl", "update_v"), ("splits.cl", "split_state"),
@@ -324,8 +336,10 @@ class ADMMSolver:
         for part in self.parts:
             self._ew(part, "xstep_hx", self.nfreq, part.planes["S"].data, part.planes["hn2"].data, R(c),
                      R(mu_v), nf)
-        for i, part, j, n, a in self._each_slab(("spec", "hs"), ("g",)):
+        for i, part, j, n, a in self._each_slab(("g", "hs") if self.lean else ("spec", "hs"), ("g",), ("spec",)):
             plan = part.plan(n, self.backend)
+            if part.lean:   # one slab of spectra: this slab's rhs transformed again (the same values)
+                plan.forward(a["g"], a["spec"])
             if plan.fuses_xstep and self.fuse_xstep:
                 plan.inverse_xstep(a["spec"], a["g"], a["hs"], part.planes["R"], part.planes["S"], c, mu_v)
                 continue
@@ -495,31 +509,36 @@ class ADMMSolver:
                       pl0["cty"].data, pl0["cw"].data, R(mu_v), I(ny), I(nx))
             # ---- u split (TV)
             tau = ctl.tv / mu_u
+            zn, rn = ("g", "spec") if self.lean else ("spec", "g")   # where z and the TV residual go
             if tau > 0:
                 # One visit per slab and TV iteration, the last slab first: its residual needs the previous
                 # slab's dual variable before this iteration's step (not yet taken), its dual step the next
                 # slab's residual (already computed): the same values as all residuals, then all steps.
-                # The first TV iteration stores z = x + eta/mu_u in spec (free until the next x step).
+                # The first TV iteration stores z = x + eta/mu_u in spec (free until the next x step),
+                # the residual goes to g (free since the w split); lean parts: z in g, the residual in
+                # their one slab of spec, whose first plane the previous slab's dual step needs next.
                 for k in range(p.tv_iters):
                     first = k == 0
-                    reads = ("px", "py", "pz") + (("x",) if first else ("spec",))
-                    writes = ("px", "py", "pz") + (("spec",) if first else ())
-                    for i, part, j, n, a in self._each_slab(reads, writes, edges=("g",), reverse=True):
+                    reads = ("px", "py", "pz") + (("x",) if first else (zn,))
+                    writes = ("px", "py", "pz") + ((zn,) if first else ())
+                    for i, part, j, n, a in self._each_slab(reads, writes, edges=(rn,), reverse=True):
                         prev, pn, hp = self._prev(i, j, "pz")
-                        self._row_grid(part, "tv_residual", a["g"].data, *grid(a), (prev if hp else a["pz"]).data,
-                                   I(hp), I(pn), I(self._has_next(i, j)), a["x" if first else "spec"].data,
-                                   a["spec"].data, I(first), R(tau), R(1.0 / tau), aw, I(n), I(ny), I(nx))
-                        gn, hn = self._next(i, j, "g")
-                        self._row_grid(part, "tv_dual_step", *grid(a), a["g"].data, (gn if hn else a["g"]).data,
+                        self._row_grid(part, "tv_residual", a[rn].data, *grid(a), (prev if hp else a["pz"]).data,
+                                   I(hp), I(pn), I(self._has_next(i, j)), a["x" if first else zn].data,
+                                   a[zn].data, I(first), R(tau), R(1.0 / tau), aw, I(n), I(ny), I(nx))
+                        gn, hn = self._next(i, j, rn)
+                        self._row_grid(part, "tv_dual_step", *grid(a), a[rn].data, (gn if hn else a[rn]).data,
                                    I(hn), step, aw, iso, I(n), I(ny), I(nx))
+                        if part.lean:
+                            part.keep_first_plane(a[rn], "r_next")
             # ---- and the next x step's rhs, for the penalties of this iteration (used if they still hold)
             rhs = self.rhs_in_tv_finish
             l1_s, mu_s = self.l1_split
-            for i, part, j, n, a in self._each_slab(("u", "x", "px", "py", "pz") + (("spec",) if tau > 0 else ())
+            for i, part, j, n, a in self._each_slab(("u", "x", "px", "py", "pz") + ((zn,) if tau > 0 else ())
                                                     + (("s",) if rhs else ()), ("u",) + (("g",) if rhs else ())):
                 prev, pn, hp = self._prev(i, j, "pz")
                 self._rows(part, "tv_finish", RU2, a["u"].data, a["x"].data,
-                          a["spec" if tau > 0 else "x"].data, *grid(a), (prev if hp else a["pz"]).data, I(hp), I(pn),
+                          a[zn if tau > 0 else "x"].data, *grid(a), (prev if hp else a["pz"]).data, I(hp), I(pn),
                           I(self._has_next(i, j)), R(ctl.tv), R(tau), aw, a["g" if rhs else "u"].data,
                           a["s" if rhs else "u"].data, I(rhs),
                           R(mu_u), R(mu_w), R(l1_s), part.l1w[j].data, R(mu_s), I(n), I(ny), I(nx))
@@ -548,6 +567,7 @@ class ADMMSolver:
         for plane in vol:   # scaled in float64, rounded to the solve's dtype; in place, a plane at a time
             plane[...] = plane.astype(np.float64) * (self.psf_scale / y_scale)
         layout = [{"device": part.rt.caps.name, "planes": [part.z0, part.z1], "streamed": part.streamed,
+                   "lean": part.lean,
                    "slab_planes": part.max_planes, "overlap": part.overlap} for part in self.parts]
         return Reconstruction(
             volume_padded=vol, crop=self.crop, log=ctl.log,
@@ -581,7 +601,7 @@ def reconstruct(measurement, psf, *,
                 mu_range: float = _D.mu_range, normalize: bool = _D.normalize,
                 dtype=np.float32, backend: str = "auto", device=None, padded_shape=None,
                 max_slab_planes: int | None = None, devices=None, max_memory=None, stream="auto",
-                overlap="auto", voxel_size_um=None, depths_um=None,
+                overlap="auto", lean="auto", voxel_size_um=None, depths_um=None,
                 weights=None, padding: str = "full", callback=None, callback_every: int = 1,
                 x0=None) -> Reconstruction:
     """Reconstruct a 3D volume from one CM2 measurement (paper Eq. 4) on an OpenCL device.
@@ -661,6 +681,10 @@ def reconstruct(measurement, psf, *,
         Double-buffer streamed slabs where two buffer sets fit, so that copies overlap work: on GPUs and
         accelerators ('auto'), always (True), or never (False: one set, larger slabs, copies and work in
         turn; 'auto' on CPUs, where double buffering measured no faster).
+    lean : 'auto' (default), True or False
+        Keep the planes resident with one slab of x spectra instead of a volume of them (7 real volumes
+        and the PSF spectra per plane, for one more forward FFT per iteration): where the whole state
+        does not fit ('auto'), always (True), or never (False). The iterates are the same.
     voxel_size_um : (dz, dy, dx) in um, optional
         Object-space voxel size, carried to ``rec.voxel_size_um``.
     depths_um : (nz,) in um, optional
@@ -734,7 +758,7 @@ def reconstruct(measurement, psf, *,
         psf, padded_shape, pad_info = support_padding(psf, fft_backend(backend, device))
     solver = ADMMSolver(psf, prm, dtype=dtype, backend=backend, device=device,
                         padded_shape=padded_shape, max_slab_planes=max_slab_planes, devices=devices,
-                        max_memory=max_memory, stream=stream, overlap=overlap)
+                        max_memory=max_memory, stream=stream, overlap=overlap, lean=lean)
     rec = solver.solve(y, callback=callback, callback_every=callback_every, weights=weights, x0=x0)
     rec.voxel_size_um, rec.depths_um = vs, d
     rec.info["padding"] = pad_info or {"padded_shape": list(solver.P), "support_px": None}

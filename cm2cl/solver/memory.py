@@ -25,6 +25,10 @@ def host_available_bytes() -> int:
     return int(psutil.virtual_memory().available)
 
 
+#: planes per slab of a lean layout (plan_layout): its x spectra are one slab of these; a few planes
+#: keep that slab small next to the volumes, and each slab's kernels long enough to hide their launch
+LEAN_SLAB_PLANES = 2
+
 #: real volumes on the padded grid the solver keeps (x, x_old/scratch, s, u, px, py, pz: parts.REAL;
 #: w, rho and eta are derived, cm2cl.solver.admm)
 REAL_VOLUMES = 7
@@ -37,10 +41,12 @@ def fft_scratch_per_plane(rt, padded_shape, dtype, backend) -> int:
     return get_plan(rt, padded_shape, 1, dtype, backend).scratch_bytes
 
 
-def memory_estimate(nz, padded_shape, dtype, backend, scratch_per_plane=0) -> dict:
+def memory_estimate(nz, padded_shape, dtype, backend, scratch_per_plane=0, lean_slab=None) -> dict:
     """Bytes the solver allocates on one device for ``nz`` resident planes: ``per_plane`` for each depth
     plane, ``fixed`` for the plane buffers; ``scratch_per_plane`` is the FFT library's scratch for one
-    plane (:func:`fft_scratch_per_plane`; the one-plane transforms need it once more)."""
+    plane (:func:`fft_scratch_per_plane`; the one-plane transforms need it once more). ``lean_slab``:
+    the lean layout with slabs of that many planes (cm2cl.solver.parts.LEAN_SCRATCH), whose x spectra
+    are one slab, a fixed cost, and whose planes hold the 7 real volumes and the PSF spectra only."""
     py, px = padded_shape
     item = np.dtype(dtype).itemsize
     spec_plane = int(np.prod(spectrum_shape((py, px), backend))) * 2 * item
@@ -49,12 +55,15 @@ def memory_estimate(nz, padded_shape, dtype, backend, scratch_per_plane=0) -> di
     # of >= 576 elements (cm2cl/solver/admm.py, ROW_ELEMENTS) but for the rounding to whole blocks of
     # x and of rows (at most one more per column block and per row block) and for short columns
     partials = real_plane // 32 + 18 * (py + px + 1) * item
-    per_plane = REAL_VOLUMES * real_plane + 2 * spec_plane + partials + int(scratch_per_plane)
+    spectra = 1 if lean_slab else 2
+    per_plane = REAL_VOLUMES * real_plane + spectra * spec_plane + partials + int(scratch_per_plane)
     # planes: v, xi, hx, cty, cw, r and two halos (real); R, S, comp (complex); hn2 (real, spectrum grid)
     fixed = 8 * real_plane + 3 * spec_plane + spec_plane // 2 + 1024 + int(scratch_per_plane)
+    if lean_slab:   # one slab of x spectra, and the plane r_next (real)
+        fixed += int(lean_slab) * spec_plane + real_plane
     return {"per_plane": per_plane, "fixed": fixed, "total": nz * per_plane + fixed,
             "real_volume": nz * real_plane, "psf_spectra": nz * spec_plane,
-            "volumes_per_plane": REAL_VOLUMES * real_plane + 2 * spec_plane}
+            "volumes_per_plane": REAL_VOLUMES * real_plane + spectra * spec_plane}
 
 
 def device_budget(rt, max_memory=None) -> int:
@@ -89,16 +98,18 @@ def streamed_bytes_per_iteration(planes, padded_shape, dtype, backend, tv_iters,
     return int(((1 if rhs_ready else 5) + 1 + 3 + 1 + 6 + 2 + 6 * tv_iters + 1) * V + (4 + tv_iters + 1) * S)
 
 
-def iteration_bytes(nz, padded_shape, dtype, backend, tv_iters) -> int:
+def iteration_bytes(nz, padded_shape, dtype, backend, tv_iters, lean=False) -> int:
     """Device memory traffic of one iteration's kernels, each FFT counted as one read and one write:
     FFT V+S; x-step accumulate 2S (reads only) and solve 3S; IFFT S+V; w split 4V; TV: residual 5V (6V
     the first time) and dual step 7V per inner iteration; TV finish 9V, which also makes the next x
     step's rhs (V: a real volume, S: a spectrum volume; rhs_volume's 6V, on the first iteration and
     after the penalties change, are not counted). With cm2cl's FFT ("cl") the solve runs inside the
-    IFFT's column pass, which then reads the PSF spectra too: 2S less (ClPlan.inverse_xstep)."""
+    IFFT's column pass, which then reads the PSF spectra too: 2S less (ClPlan.inverse_xstep). ``lean``:
+    the x step transforms its rhs twice, V+S more."""
     est = memory_estimate(nz, padded_shape, dtype, backend)
-    spectra = 5 if backend == "cl" else 7
-    return int((1 + 1 + 4 + 1 + 9 + 12 * tv_iters) * est["real_volume"] + spectra * est["psf_spectra"])
+    spectra = (5 if backend == "cl" else 7) + (1 if lean else 0)
+    real = 1 + 1 + 4 + 1 + 9 + 12 * tv_iters + (1 if lean else 0)
+    return int(real * est["real_volume"] + spectra * est["psf_spectra"])
 
 
 #: seconds per iteration over the bandwidth floor (iteration_bytes / copy rate) of cm2cl's kernels,
@@ -115,7 +126,7 @@ def expected_seconds(layout, padded_shape, dtype, backend, tv_iters, copy_rates,
     devices run side by side, parts on one device one after another."""
     per_device: dict = {}
     for lp in layout:
-        t = KERNEL_FLOOR_RATIO * iteration_bytes(lp.z1 - lp.z0, padded_shape, dtype, backend, tv_iters) \
+        t = KERNEL_FLOOR_RATIO * iteration_bytes(lp.z1 - lp.z0, padded_shape, dtype, backend, tv_iters, lp.lean) \
             / copy_rates[id(lp.rt)]
         if lp.streamed:
             c = streamed_bytes_per_iteration(lp.z1 - lp.z0, padded_shape, dtype, backend, tv_iters) \
@@ -136,13 +147,17 @@ class PartPlan:
     device_bytes: int
     host_bytes: int
     overlap: bool = False   #: streamed with two sets of slab buffers: the next slab's copies overlap this one's work
+    lean: bool = False      #: resident with one slab of x spectra (memory_estimate's lean_slab: slab_planes)
 
 
 def plan_layout(nz, padded_shape, dtype, backend, runtimes, *, max_memory=None, stream="auto",
-                max_slab_planes=None, scratch_per_plane=0, overlap="auto") -> list[PartPlan]:
+                max_slab_planes=None, scratch_per_plane=0, overlap="auto", lean="auto") -> list[PartPlan]:
     """Spread ``nz`` planes over ``runtimes`` (contiguous runs, in proportion to each device's budget):
-    resident where every run fits its device, else (``stream`` 'auto' or True) streamed slabs sized to
-    the budget; ``stream=True`` streams even when resident would fit. Streamed slabs are double-buffered
+    resident where every run fits its device; else resident and lean (``lean`` 'auto' or True: one slab
+    of LEAN_SLAB_PLANES planes of x spectra instead of a volume of them, for one more forward FFT per
+    iteration) where that fits; else (``stream`` 'auto' or True) streamed slabs sized to the budget.
+    ``lean=True`` takes the lean layout even where the whole state fits, ``lean=False`` never;
+    ``stream=True`` streams even when resident would fit. Streamed slabs are double-buffered
     (``overlap``: two sets of slab buffers, so that copies overlap work) where the part has two slabs or
     more and two buffers of at least one plane fit; ``overlap='auto'`` double-buffers on devices with
     their own memory (GPUs, accelerators) and not on CPUs, where a copy is the same cores' work and
@@ -152,16 +167,27 @@ def plan_layout(nz, padded_shape, dtype, backend, runtimes, *, max_memory=None, 
         raise ValueError(f"stream: expected 'auto', True or False, got {stream!r}")
     if overlap not in ("auto", True, False):
         raise ValueError(f"overlap: expected 'auto', True or False, got {overlap!r}")
+    if lean not in ("auto", True, False):
+        raise ValueError(f"lean: expected 'auto', True or False, got {lean!r}")
     est = memory_estimate(1, padded_shape, dtype, backend, scratch_per_plane)
     per, fixed, vols = est["per_plane"], est["fixed"], est["volumes_per_plane"]
     budgets = [device_budget(rt, max_memory) for rt in runtimes]
     keep = [(rt, r, bud) for rt, r, bud in zip(runtimes, _proportional_runs(nz, budgets), budgets) if r[1] > r[0]]
     runtimes, runs, budgets = [k[0] for k in keep], [k[1] for k in keep], [k[2] for k in keep]
-    if stream is not True and all(fixed + (b - a) * per <= bud for (a, b), bud in zip(runs, budgets)):
+    if stream is not True and lean is not True and all(fixed + (b - a) * per <= bud for (a, b), bud in zip(runs, budgets)):
         return [PartPlan(rt, a, b, False, max_slab_planes, fixed + (b - a) * per, 0)
                 for rt, (a, b) in zip(runtimes, runs)]
-    if stream is False:
-        need = max(fixed + (b - a) * per for a, b in runs)
+    if stream is not True and lean is not False:
+        slabs = [int(min(LEAN_SLAB_PLANES, b - a, max_slab_planes or LEAN_SLAB_PLANES)) for a, b in runs]
+        need = [_lean_bytes(b - a, slab, padded_shape, dtype, backend, scratch_per_plane)
+                for (a, b), slab in zip(runs, slabs)]
+        if all(n <= bud for n, bud in zip(need, budgets)):
+            return [PartPlan(rt, a, b, False, slab, n, 0, lean=True)
+                    for rt, (a, b), slab, n in zip(runtimes, runs, slabs, need)]
+    if stream is False:   # the need of the leanest resident layout allowed
+        need = max(fixed + (b - a) * per if lean is False else
+                   _lean_bytes(b - a, int(min(LEAN_SLAB_PLANES, b - a, max_slab_planes or LEAN_SLAB_PLANES)),
+                               padded_shape, dtype, backend, scratch_per_plane) for a, b in runs)
         raise DeviceError(
             f"problem too large to keep on the device{'s' if len(runtimes) > 1 else ''}: {nz} planes on a "
             f"{padded_shape[0]} x {padded_shape[1]} padded grid need {need / 2**30:.2f} GiB per device, "
@@ -183,6 +209,10 @@ def plan_layout(nz, padded_shape, dtype, backend, runtimes, *, max_memory=None, 
         else:
             out.append(PartPlan(rt, a, b, True, slab, fixed + slab * per, (b - a) * vols))
     return out
+
+
+def _lean_bytes(planes, slab, padded_shape, dtype, backend, scratch_per_plane) -> int:
+    return memory_estimate(planes, padded_shape, dtype, backend, scratch_per_plane, lean_slab=slab)["total"]
 
 
 def _proportional_runs(nz, budgets):

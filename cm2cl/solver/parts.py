@@ -1,6 +1,6 @@
 """Where the depth planes of one solve live: a list of parts, each a contiguous run of planes on one
-device, either resident (every volume in device memory) or streamed (the volumes in host memory, one
-slab at a time on the device).
+device, either resident (every volume in device memory; lean: all but the x spectra, of which it keeps
+one slab) or streamed (the volumes in host memory, one slab at a time on the device).
 
 The ADMM iteration couples planes only through sums over depth (the x step's spectral sum and the
 scalars of the stopping rule) and through TV's axial neighbours (one plane across each slab border), so
@@ -31,8 +31,12 @@ from ..device.fft import get_plan
 #: argument z as reals while the x spectra are not needed (the lean state: cm2cl/solver/admm.py)
 REAL = ("x", "g", "s", "u", "px", "py", "pz")
 COMPLEX = ("spec", "hs")
+#: the volumes a lean part keeps one slab of (device memory for 7 real volumes and the PSF spectra per
+#: plane): the x step transforms each slab's rhs twice, once for the spectral sum and once for the solve,
+#: and the TV prox keeps z in g and its residual in this slab (cm2cl/solver/admm.py)
+LEAN_SCRATCH = ("spec",)
 
-__all__ = ["Part", "split_planes", "REAL", "COMPLEX"]
+__all__ = ["Part", "split_planes", "REAL", "COMPLEX", "LEAN_SCRATCH"]
 
 
 def split_planes(nz: int, parts: int) -> list[tuple[int, int]]:
@@ -49,11 +53,14 @@ class Part:
     device buffers for each step."""
 
     def __init__(self, rt, z0, z1, padded_shape, spec_plane, dtype, cdtype, *, slab_planes=None,
-                 streamed=False, overlap=False, pinned=None):
+                 streamed=False, overlap=False, pinned=None, lean=False):
         self.rt, self.z0, self.z1 = rt, int(z0), int(z1)
         self.P, self.spec_plane = tuple(padded_shape), tuple(spec_plane)
         self.dtype, self.cdtype = np.dtype(dtype), np.dtype(cdtype)
         self.streamed = bool(streamed)
+        if lean and self.streamed:
+            raise ValueError("lean: a part is lean (one slab of spectra) or streamed, not both")
+        self.lean = bool(lean)
         plane_bytes = int(np.prod(self.spec_plane)) * self.cdtype.itemsize
         if 2 * int(np.prod(self.spec_plane)) < int(np.prod(self.P)):   # spec holds a real volume (z) too
             raise ValueError(f"spectrum plane {self.spec_plane} holds fewer reals than a padded plane {self.P}")
@@ -72,12 +79,18 @@ class Part:
                           for _ in range(2 if self.overlap else 1)]
             self.vol = None
         else:
-            self.vol = {n: Volume(rt, self.bounds, s, d) for n, (s, d) in shapes.items()}
+            self.vol = {n: Volume(rt, self.bounds, s, d) for n, (s, d) in shapes.items()
+                        if not (self.lean and n in LEAN_SCRATCH)}
+        #: lean parts: one slab of each LEAN_SCRATCH volume, whatever slab it serves
+        self.scratch = {n: rt.zeros((self.max_planes,) + shapes[n][0], shapes[n][1])
+                        for n in (LEAN_SCRATCH if self.lean else ())}
         plane = lambda shape, dt: Volume(rt, [(0, 1)], shape, dt).slabs[0]  # noqa: E731
         self.planes = {n: plane(self.P, self.dtype) for n in ("v", "xi", "hx", "cty", "cw", "r",
                                                               "halo_prev", "halo_next")}
         self.planes |= {n: plane(self.spec_plane, self.cdtype) for n in ("R", "S", "comp")}
         self.planes["hn2"] = plane(self.spec_plane, self.dtype)
+        if self.lean:   # the first plane of the TV residual of the slab after the one being visited
+            self.planes["r_next"] = plane(self.P, self.dtype)
         self.moved_bytes = 0   # host <-> device traffic of the streamed slabs
 
     def _host_array(self, shape, dtype, pinned: bool) -> np.ndarray:
@@ -96,7 +109,7 @@ class Part:
         if self.streamed:
             vols = sum(a.nbytes for slot in self.slots for a in slot.values())
         else:
-            vols = sum(v.nbytes for v in self.vol.values())
+            vols = sum(v.nbytes for v in self.vol.values()) + sum(a.nbytes for a in self.scratch.values())
         return vols + sum(a.nbytes for a in self.planes.values())
 
     @property
@@ -114,7 +127,7 @@ class Part:
         if self.streamed:
             slot = self.slots[j % len(self.slots)]
             return {n: slot[n][: b - a] for n in names}
-        return {n: self.vol[n].slabs[j] for n in names}
+        return {n: self.scratch[n][: b - a] if n in self.scratch else self.vol[n].slabs[j] for n in names}
 
     def slabs(self, reads=(), writes=(), scratch=(), edges=(), reverse=False):
         """Visit each slab (last first with ``reverse``): yields (j, planes, arrays) with the device
@@ -187,12 +200,23 @@ class Part:
         the first plane of slab j+1, 'prev': the last plane of slab j-1), with its plane count; a
         streamed part copies that plane into a halo buffer."""
         k = j + 1 if which == "next" else j - 1
+        if name in self.scratch:   # lean: only the next slab's first plane is kept, and only of the residual
+            assert which == "next", which
+            return self.planes["r_next"], 1
         if not self.streamed:
             s = self.vol[name].slabs[k]
             return s, s.shape[0]
         self.sync()
         src = self.host[name][k]
         return self.load_halo(which, src[0] if which == "next" else src[-1]), 1
+
+    def keep_first_plane(self, arr, plane: str):
+        """Copy the first plane of ``arr`` (reals of the padded grid; a slab of scratch) to the plane
+        buffer ``plane``, on the device."""
+        import pyopencl as cl
+
+        dst = self.planes[plane]
+        cl.enqueue_copy(self.rt.queue, dst.data, arr.data, byte_count=dst.nbytes)
 
     def load_halo(self, which: str, plane: np.ndarray):
         buf = self.planes["halo_" + which]
@@ -203,6 +227,9 @@ class Part:
     def edge_plane(self, name: str, which: str) -> np.ndarray:
         """The part's first ('first') or last ('last') plane of volume ``name`` on the host."""
         j = 0 if which == "first" else len(self.bounds) - 1
+        if name in self.scratch:   # lean: the first plane as the last visit (slab 0, visits in reverse) left it
+            assert which == "first", which
+            return self.planes["r_next"].get()[0]
         if self.streamed:
             return self.host[name][j][0 if which == "first" else -1]
         s = self.vol[name].slabs[j]
