@@ -115,3 +115,26 @@ def test_a_plane_larger_than_the_largest_buffer_is_a_clear_error():
 
     with pytest.raises(DeviceError, match=r"one depth plane needs .* MiB but the device's largest buffer is"):
         slab_bounds(4, 3 * 2**20, 2**20)
+
+
+@pytest.mark.parametrize("plane_shape", [(16, 32), (3, 5)], ids=["aligned", "unaligned"])
+def test_slabbed_volume_round_trips_in_one_allocation_where_aligned(rt, plane_shape):
+    """A volume in several slabs is one buffer with a sub-buffer per slab where each slab starts at the
+    device's base-address alignment (16 x 32 float32 planes: 2 KiB), separate buffers otherwise
+    (3 x 5: 60 bytes); either way set, get, fill and scale act on the planes they should."""
+    from cm2cl.device.volume import Volume
+
+    rng = np.random.default_rng(8)
+    bounds = [(0, 2), (2, 4), (4, 5)]
+    vol = Volume(rt, bounds, plane_shape, np.float32)
+    align = rt.device.mem_base_addr_align // 8
+    one = 2 * 16 * 32 * 4 % align == 0 if plane_shape == (16, 32) else False
+    assert (vol._whole is not None) is one
+    host = rng.standard_normal((5,) + plane_shape).astype(np.float32)
+    np.testing.assert_array_equal(vol.set(host).get(), host)
+    vol.slabs[1].set(np.zeros((2,) + plane_shape, np.float32))   # a slab's writes stay in its planes
+    want = host.copy()
+    want[2:4] = 0
+    np.testing.assert_array_equal(vol.get(), want)
+    np.testing.assert_allclose(vol.scale(2.0).get(), 2 * want)
+    np.testing.assert_array_equal(vol.fill(3).get(), np.full_like(host, 3))

@@ -243,12 +243,15 @@ class ADMMSolver:
     def _row_layout(self, part, vw: int, rows: int | None = None):
         """The row kernels' work on ``part`` (kernels/common.cl): ``vw`` reals per work-item (the
         kernels' VW, built in) and ``rows`` rows each (by default as few as keep the partials per sum
-        within PARTIALS, and each work-item at ROW_ELEMENTS or more for the largest slab), and the
+        within PARTIALS, and each work-item at ROW_ELEMENTS or more over the planes the device holds: a
+        streamed part's slab, a resident part's planes, however many slabs they are in), and the
         partials buffer that layout needs."""
         ny, nx = self.P
         nxb = -(-nx // vw)
+        # the partials go with the planes the device holds (a streamed slab; a resident part's planes)
+        held = part.max_planes if part.streamed else part.z1 - part.z0
         if rows is None:
-            rows = min(ny, max(-(-ROW_ELEMENTS // (vw * part.max_planes)), -(-nxb * ny // PARTIALS)))
+            rows = min(ny, max(-(-ROW_ELEMENTS // (vw * held)), -(-nxb * ny // PARTIALS)))
         part.vw, part.rows = vw, int(rows)
         part.cw = max(vw // 2, 1)   # complex values per work-item of xstep_accumulate, xstep_solve
         part.k.update({n: kernels.kernel(part.rt, f, n, self.dtype, {"VW": vw}) for f, n in ROW_KERNELS})

@@ -21,7 +21,7 @@ allocated by the driver), which is what lets a GPU copy while it computes.
 from __future__ import annotations
 
 import numpy as np
-from ..device.volume import Volume, slab_bounds
+from ..device.volume import Volume, fill, slab_bounds
 from ..device.transfer import CopyQueue, work_done, wait_before_work, pinned_array
 from ..device.fft import get_plan
 
@@ -90,7 +90,7 @@ class Part:
         self.planes |= {n: plane(self.spec_plane, self.cdtype) for n in ("R", "S", "comp")}
         self.planes["hn2"] = plane(self.spec_plane, self.dtype)
         if self.lean:   # the first plane of the TV residual of the slab after the one being visited
-            self.planes["r_next"] = plane(self.P, self.dtype)
+            self.planes["r_next"] = fill(rt, plane(self.P, self.dtype), 0)
         self.moved_bytes = 0   # host <-> device traffic of the streamed slabs
 
     def _host_array(self, shape, dtype, pinned: bool) -> np.ndarray:
