@@ -113,3 +113,27 @@ def test_lean_layout_keeps_seven_real_volumes_and_the_psf_spectra_per_plane(rt, 
     assert 0 <= part.device_bytes - nz * est["volumes_per_plane"] <= est["fixed"]
     whole = memory_estimate(nz, P, dtype, "cl")
     assert whole["total"] - est["total"] == (nz - 1) * spec - P[0] * P[1] * item
+
+
+def test_lean_parts_launch_the_kernels_without_scratch_once_over_all_planes(rt, monkeypatch):
+    """In the lean layout (here 1-plane slabs, one allocation per volume) the w split and TV finish run
+    as one launch over all planes per iteration; the TV residual and dual step, which use the one slab of
+    scratch, run per slab; the iterates are those of the one-slab solve."""
+    psf, _, y = bead_problem(3)
+    nz = psf.shape[0]
+    prm = ADMMParams(max_iter=4, tol=0, tv_axial_weight=0.5)
+    whole = ADMMSolver(psf, prm, backend="cl", padded_shape=P).solve(y)
+    s = ADMMSolver(psf, prm, backend="cl", padded_shape=P, lean=True, max_slab_planes=1)
+    assert len(s.parts[0].bounds) == nz > 1
+    calls = {}
+    for method in ("_rows", "_row_grid"):
+        real = getattr(ADMMSolver, method)
+
+        def counted(self, part, name, *args, _real=real):
+            calls[name] = calls.get(name, 0) + 1
+            return _real(self, part, name, *args)
+        monkeypatch.setattr(ADMMSolver, method, counted)
+    lean = s.solve(y)
+    assert calls["update_w"] == calls["tv_finish"] == 4
+    assert calls["tv_residual"] == calls["tv_dual_step"] == 4 * prm.tv_iters * nz
+    assert rel(lean.volume, whole.volume) < 2e-6

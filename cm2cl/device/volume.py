@@ -85,6 +85,18 @@ class Volume:
                           for z0, z1 in self.bounds]
 
     @property
+    def whole(self):
+        """The whole volume as one device array where it is one allocation (one slab, or slabs that are
+        sub-buffers of one buffer), else None."""
+        if len(self.slabs) == 1:
+            return self.slabs[0]
+        if self._whole is None:
+            return None
+        import pyopencl.array as cla
+
+        return cla.Array(self.rt.queue, self.shape, self.dtype, data=self._whole)
+
+    @property
     def shape(self):
         return (self.bounds[-1][1],) + self.plane_shape
 

@@ -211,6 +211,8 @@ class ADMMSolver:
             part.l1w = [part.rt.zeros(b - a, self.dtype) for a, b in part.bounds]
             for (a, b), arr in zip(part.bounds, part.l1w):
                 arr.set(self.l1_plane_weights[part.z0 + a:part.z0 + b].astype(self.dtype))
+            part.l1w_all = part.rt.zeros(part.z1 - part.z0, self.dtype) if len(part.bounds) > 1 else part.l1w[0]
+            part.l1w_all.set(self.l1_plane_weights[part.z0:part.z1].astype(self.dtype))
         self.psf_scale *= self.psf_prescale  # the whole scale from the caller's PSF
         # buffers, plus the FFT libraries' scratch of the plans each part uses
         self.allocated_bytes = sum(part.device_bytes + part.partials.nbytes + part.out.nbytes + part.plan2d.scratch_bytes
@@ -298,6 +300,19 @@ class ADMMSolver:
             for j, n, a in self.parts[i].slabs(reads, writes, scratch, edges, reverse):
                 yield i, self.parts[i], j, n, a
 
+    def _each_run(self, reads=(), writes=()):
+        """Every run of planes the kernels that touch no scratch can take in one launch: a resident
+        part whose volumes are one allocation each, all its planes at once (its slabs in one launch:
+        separate launches on 2-plane slabs measured ~2x slower for update_w), else each slab as
+        :meth:`_each_slab`: (part index, part, first slab, last slab, planes, arrays, l1 plane weights)."""
+        for i, part in enumerate(self.parts):
+            whole = part.whole(tuple(reads) + tuple(writes))
+            if whole is not None:
+                yield i, part, 0, len(part.bounds) - 1, part.z1 - part.z0, whole, part.l1w_all
+                continue
+            for j, n, a in part.slabs(reads, writes):
+                yield i, part, j, j, n, a, part.l1w[j]
+
     def x_step(self, mu_v, mu_u, mu_w):
         """Solve (mu_v H^T H + (mu_u + mu_w) I) x = H^T (mu_v v - xi) + (mu_u u - eta) + (mu_w w - rho)
         exactly, with eta, w and rho derived from the state (p, s; module docstring): the solution goes to
@@ -359,10 +374,10 @@ class ADMMSolver:
         ny, nx = self.P
         l1_s, mu_s = self.l1_split
         aw, iso = R(self.p.tv_axial_weight), I(1 if self.p.tv_isotropic else 0)
-        for i, part, j, n, a in self._each_slab(("x", "g", "s"), ("s",)):
-            xn, has_next = self._next(i, j, "x")
+        for i, part, j0, j1, n, a, l1w in self._each_run(("x", "g", "s"), ("s",)):
+            xn, has_next = self._next(i, j1, "x")
             self._rows(part, "update_w", DX2, a["x"].data, (xn if has_next else a["x"]).data,
-                      I(has_next), a["g"].data, a["s"].data, R(l1), part.l1w[j].data, R(mu_w), R(l1_s), R(mu_s),
+                      I(has_next), a["g"].data, a["s"].data, R(l1), l1w.data, R(mu_w), R(l1_s), R(mu_s),
                       aw, iso, I(n), I(ny), I(nx))
         self.l1_split = (float(l1), float(mu_w))
 
@@ -537,14 +552,14 @@ class ADMMSolver:
             # ---- and the next x step's rhs, for the penalties of this iteration (used if they still hold)
             rhs = self.rhs_in_tv_finish
             l1_s, mu_s = self.l1_split
-            for i, part, j, n, a in self._each_slab(("u", "x", "px", "py", "pz") + ((zn,) if tau > 0 else ())
-                                                    + (("s",) if rhs else ()), ("u",) + (("g",) if rhs else ())):
-                prev, pn, hp = self._prev(i, j, "pz")
+            for i, part, j0, j1, n, a, l1w in self._each_run(("u", "x", "px", "py", "pz") + ((zn,) if tau > 0 else ())
+                                                             + (("s",) if rhs else ()), ("u",) + (("g",) if rhs else ())):
+                prev, pn, hp = self._prev(i, j0, "pz")
                 self._rows(part, "tv_finish", RU2, a["u"].data, a["x"].data,
                           a[zn if tau > 0 else "x"].data, *grid(a), (prev if hp else a["pz"]).data, I(hp), I(pn),
-                          I(self._has_next(i, j)), R(ctl.tv), R(tau), aw, a["g" if rhs else "u"].data,
+                          I(self._has_next(i, j1)), R(ctl.tv), R(tau), aw, a["g" if rhs else "u"].data,
                           a["s" if rhs else "u"].data, I(rhs),
-                          R(mu_u), R(mu_w), R(l1_s), part.l1w[j].data, R(mu_s), I(n), I(ny), I(nx))
+                          R(mu_u), R(mu_w), R(l1_s), l1w.data, R(mu_s), I(n), I(ny), I(nx))
             self.rhs_for = (mu_u, mu_w, l1_s, mu_s, self.tv_split) if rhs else None
             # ---- the scalars of this iteration: one small read per part, added in float64
             s = np.zeros(NSLOTS)

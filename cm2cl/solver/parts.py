@@ -129,6 +129,15 @@ class Part:
             return {n: slot[n][: b - a] for n in names}
         return {n: self.scratch[n][: b - a] if n in self.scratch else self.vol[n].slabs[j] for n in names}
 
+    def whole(self, names):
+        """Device arrays of all the part's planes of ``names`` where each is one allocation (resident
+        volumes; not the lean scratch, nor the x spectra, whose slabs hold z as reals slab by slab),
+        else None."""
+        if self.streamed or any(n in self.scratch or n in COMPLEX for n in names):
+            return None
+        out = {n: self.vol[n].whole for n in names}
+        return None if any(a is None for a in out.values()) else out
+
     def slabs(self, reads=(), writes=(), scratch=(), edges=(), reverse=False):
         """Visit each slab (last first with ``reverse``): yields (j, planes, arrays) with the device
         arrays of ``reads``, ``writes``, ``scratch`` and ``edges``; a streamed part copies ``reads`` in
