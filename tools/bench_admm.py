@@ -109,7 +109,8 @@ def main(argv=None):
     head = ["sensor x planes", "FFT backend", "padded grid", "device s/iter", "numpy s/iter", "speed-up",
             "device MiB", "target MiB (7 V + PSF spectra)", "bandwidth floor ms", "x floor",
             "FFTs ms/iter (share)"]
-    text = (f"Device: **{rt.caps.name}** ({rt.caps.platform}), {os.cpu_count()} host cores; float32, "
+    text = (f"Device: **{rt.caps.name}** ({rt.caps.implementation}; FFT backends {', '.join(fft.available_backends())}), "
+            f"{os.cpu_count()} host cores; float32, "
             f"tv_iters={p.tv_iters}; median time between iterations {SKIP + 1}-{SKIP + a.iters} (past the "
             f"adaptive penalties' first {SKIP} iterations, where they may change on each) after a warm-up run, "
             f"the median of {RUNS} device solves (numpy: one); each solve right after a copy kernel's rate "
