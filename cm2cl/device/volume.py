@@ -43,6 +43,17 @@ def fill(rt, a, value=0):
     return a
 
 
+def copy_head(rt, dst, src):
+    """Copy the first ``dst.nbytes`` bytes of device array ``src`` (any dtype) into ``dst``, on the device;
+    returns ``dst``."""
+    import pyopencl as cl
+
+    if src.nbytes < dst.nbytes:
+        raise DeviceError(f"copy_head: {src.nbytes} bytes in the source, {dst.nbytes} to copy")
+    cl.enqueue_copy(rt.queue, dst.data, src.data, byte_count=dst.nbytes)
+    return dst
+
+
 def scale(rt, a, factor):
     """``a *= factor`` in place for the contiguous device array ``a`` (real or complex) and a real
     factor; returns ``a``."""

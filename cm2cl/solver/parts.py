@@ -21,7 +21,7 @@ allocated by the driver), which is what lets a GPU copy while it computes.
 from __future__ import annotations
 
 import numpy as np
-from ..device.volume import Volume, fill, slab_bounds
+from ..device.volume import Volume, copy_head, fill, slab_bounds
 from ..device.transfer import CopyQueue, work_done, wait_before_work, pinned_array
 from ..device.fft import get_plan
 
@@ -222,10 +222,7 @@ class Part:
     def keep_first_plane(self, arr, plane: str):
         """Copy the first plane of ``arr`` (reals of the padded grid; a slab of scratch) to the plane
         buffer ``plane``, on the device."""
-        import pyopencl as cl
-
-        dst = self.planes[plane]
-        cl.enqueue_copy(self.rt.queue, dst.data, arr.data, byte_count=dst.nbytes)
+        copy_head(self.rt, self.planes[plane], arr)
 
     def load_halo(self, which: str, plane: np.ndarray):
         buf = self.planes["halo_" + which]
