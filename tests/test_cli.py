@@ -231,3 +231,12 @@ def test_prior_points_turns_tv_off(rt, tmp_path):
     power = (h ** 2).sum(axis=(1, 2))
     assert info["tv"] == 0
     np.testing.assert_allclose(info["l1_plane_weights"], power / power.mean(), rtol=1e-5)
+
+
+@pytest.mark.parametrize("command", ["devices", "demo", "simulate", "reconstruct", "prepare-psf"])
+def test_every_command_prints_its_help(command, capsys):
+    """argparse formats help strings with %: a stray one (a '9%' in --lean's help did) breaks --help."""
+    with pytest.raises(SystemExit) as exc:
+        main([command, "--help"])
+    assert exc.value.code == 0
+    assert "usage: cm2cl " + command in capsys.readouterr().out

@@ -85,7 +85,7 @@ def register(sub):
                         "(auto, default), always, or never (refuse a problem that does not fit)")
     g.add_argument("--lean", choices=["auto", "always", "never"], default="auto",
                    help="keep the planes on the device with one slab of x spectra instead of a volume of them "
-                        "(about 9% less memory, one more FFT per iteration): when the whole state does not fit "
+                        "(about 9%% less memory, one more FFT per iteration): when the whole state does not fit "
                         "(auto, default), always, or never")
     g.add_argument("--tile", type=int, nargs=2, metavar=("TY", "TX"), default=None,
                    help="single frame: solve lateral tiles of about TY x TX pixels, each with a halo of measurement "
