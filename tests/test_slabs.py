@@ -115,6 +115,19 @@ def test_lean_layout_equals_the_whole_solve(rt, dtype, monkeypatch):
     assert err > 1e-3, err
 
 
+@pytest.mark.parametrize("extra", [dict(tv=0.0), dict(penalty="balance"), dict(tv_iters=1),
+                                   dict(tv_iters=3, tv_isotropic=False)],
+                         ids=["tv-off", "balance-penalties", "one-tv-iteration", "three-anisotropic"])
+def test_lean_layout_equals_the_whole_solve_across_options(rt, extra):
+    """TV off (TV finish reads x, no residual), penalties that change on most iterations (the x step
+    makes its own rhs into g, then transforms it twice), one and three TV iterations per x step."""
+    psf, y, kw = problem()
+    whole = reconstruct(y, psf, device=rt, **kw, **extra)
+    lean = reconstruct(y, psf, device=rt, lean=True, **kw, **extra)
+    assert lean.info["layout"][0]["lean"]
+    close(lean.volume, whole.volume, np.float32)
+
+
 def test_lean_parts_over_two_devices_equal_the_whole_solve(rt, subdevices):
     """Lean parts on two devices: the residual plane across the device border comes from the next
     part's r_next (its slab 0, visited last)."""
