@@ -63,7 +63,7 @@ def plan_rows():
                 moved = streamed_bytes_per_iteration(nz, P, np.float32, "cl", 2) if lp.streamed else 0
                 rows.append([f"{nz}", f"{P[0]} x {P[1]} ({pad_name})", f"{dev}",
                              (f"streamed, slabs of {lp.slab_planes}" + (", double-buffered" if lp.overlap else ""))
-                             if lp.streamed else "resident",
+                             if lp.streamed else "resident, lean" if lp.lean else "resident",
                              f"{lp.device_bytes / GB:.1f}", f"{host / GB:.1f}", fits, f"{moved / GB:.1f}",
                              f"{nz * P[0] * P[1] / (2 * sensor[0] - 1) / (2 * sensor[1] - 1) / nz:.2f}"])
     return rows
