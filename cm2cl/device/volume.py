@@ -86,7 +86,7 @@ class Volume:
         self._whole = None
         if len(self.bounds) > 1 and total <= rt.caps.max_alloc and all(z0 * plane % align == 0 for z0, _ in self.bounds):
             # one allocation, a sub-buffer per slab: separately allocated slabs ran the stencil kernels
-            # ~1.3-1.9x slower than one buffer on PoCL (2-plane slabs of the demo size; tools/bench_admm.py)
+            # ~1.3-1.9x slower than one buffer on PoCL (the demo grid; docs/benchmarks.md, "The lean layout")
             self._whole = cl.Buffer(rt.context, cl.mem_flags.READ_WRITE, total)
             self.slabs = [cla.Array(rt.queue, (z1 - z0,) + self.plane_shape, self.dtype,
                                     data=self._whole.get_sub_region(z0 * plane, (z1 - z0) * plane))
