@@ -8,7 +8,7 @@ import pytest
 from cm2cl import reconstruct
 from cm2cl.solver import memory
 from cm2cl.solver.memory import memory_estimate, plan_layout, streamed_bytes_per_iteration
-from cm2cl.errors import DeviceError
+from cm2cl.errors import DeviceError, InputError
 
 from test_admm import bead_problem
 
@@ -207,6 +207,8 @@ def test_planner_goes_lean_before_it_streams(rt):
         plan_layout(nz, P, np.float32, "cl", [rt], max_memory=lean_est["total"] - 1, stream=False)
     with pytest.raises(ValueError, match="lean: expected"):
         plan_layout(nz, P, np.float32, "cl", [rt], lean="yes")
+    with pytest.raises(InputError, match="lean and stream: .* ask for one of them"):
+        plan_layout(nz, P, np.float32, "cl", [rt], lean=True, stream=True)
 
 
 def test_cli_streams_under_a_memory_cap_and_plans_it(rt, tmp_path, capsys):
@@ -253,6 +255,8 @@ def test_cli_streams_under_a_memory_cap_and_plans_it(rt, tmp_path, capsys):
     assert main(base + ["-o", str(tmp_path / "c.ome.tif"), "--max-memory", lean_cap, "--lean", "never",
                         "--dry-run"]) == 0
     assert "streamed in slabs" in capsys.readouterr().out
+    assert main(base + ["-o", str(tmp_path / "c.ome.tif"), "--lean", "always", "--stream", "always"]) == 2
+    assert "ask for one of them" in capsys.readouterr().err
     assert main(base + ["-o", str(tmp_path / "c.ome.tif"), "--host-memory", "1K"]) == 2
     assert "MiB allowed (--host-memory)" in capsys.readouterr().err
     assert not (tmp_path / "c.ome.tif").exists()

@@ -221,6 +221,9 @@ def command(args) -> int:
     from ..io.prepare import check_image, prepare
     from ..solver import reconstruct
 
+    if args.lean == "always" and args.stream == "always":   # before any work, series too
+        raise InputError("--lean always and --stream always: the lean layout keeps every plane on the device, "
+                         "streaming keeps them in host memory; ask for one of them")
     out = Path(args.output)
     if out.suffix.lower() == ".zarr":
         from . import series

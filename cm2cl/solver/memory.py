@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..device.fft import spectrum_shape
-from ..errors import DeviceError
+from ..errors import DeviceError, InputError
 
 __all__ = ["memory_estimate", "check_fits", "host_available_bytes", "plan_layout", "PartPlan", "device_budget",
            "streamed_bytes_per_iteration", "fft_scratch_per_plane", "iteration_bytes", "expected_seconds"]
@@ -169,6 +169,9 @@ def plan_layout(nz, padded_shape, dtype, backend, runtimes, *, max_memory=None, 
         raise ValueError(f"overlap: expected 'auto', True or False, got {overlap!r}")
     if lean not in ("auto", True, False):
         raise ValueError(f"lean: expected 'auto', True or False, got {lean!r}")
+    if lean is True and stream is True:
+        raise InputError("lean and stream: the lean layout keeps every plane on the device, streaming keeps "
+                         "them in host memory; ask for one of them (--lean always or --stream always)")
     est = memory_estimate(1, padded_shape, dtype, backend, scratch_per_plane)
     per, fixed, vols = est["per_plane"], est["fixed"], est["volumes_per_plane"]
     budgets = [device_budget(rt, max_memory) for rt in runtimes]
