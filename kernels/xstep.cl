@@ -40,12 +40,16 @@ __kernel void rhs_plane(__global real_t *r, __global const real_t *v, __global c
     if (i < n) r[i] = mu_v * v[i] - xi[i];
 }
 
-/* S (+)= sum_i H_i B_i with B_i = conj(H_i) R + T_i (Kahan, carried in comp); B is not stored: the
- * solve forms it again from T, H and R (one spectrum volume less written per iteration).
+/* S (+)= sum_i H_i B_i over planes i in [p0, p1) with B_i = conj(H_i) R + T_i (Kahan, carried in comp);
+ * B is not stored: the solve forms it again from T, H and R (one spectrum volume less written per
+ * iteration). A launch may take a run of planes only: it continues from the S and comp the previous one
+ * stored (not `first`), the same additions as in one launch, bit for bit. On CPUs the solver launches
+ * runs of ACC_PLANES (cm2cl/solver/admm.py): a work-item reading 2 x 16 planes at once streams from 32
+ * places, more than the CPU's prefetchers follow.
  * CW frequencies per work-item (complex row vectors, common.cl): global size ceil(nfreq / CW). */
 __kernel void xstep_accumulate(__global const cplx_t *T, __global const cplx_t *H, __global const cplx_t *R,
                                __global cplx_t *S, __global cplx_t *comp,
-                               const int planes, const ulong nfreq, const int first) {
+                               const int p0, const int p1, const ulong nfreq, const int first) {
     const size_t k = get_global_id(0) * CW;
     if (k >= nfreq) return;
     const size_t cnt = nfreq - k;
@@ -55,7 +59,7 @@ __kernel void xstep_accumulate(__global const cplx_t *T, __global const cplx_t *
         cload(S, k, cnt, &sr, &si);
         cload(comp, k, cnt, &cr, &ci);
     }
-    for (int i = 0; i < planes; ++i) {
+    for (int i = p0; i < p1; ++i) {
         const size_t j = (size_t)i * nfreq + k;
         chalf_t hr, hi, tr, ti;
         cload(H, j, cnt, &hr, &hi);

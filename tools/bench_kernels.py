@@ -3,16 +3,19 @@ the device's copy bandwidth (issue 10, item 6: the stencil and reduction kernels
 
 Every kernel launch of a few iterations is timed alone (the queue is drained before and after it, so
 launches do not overlap; the sum is therefore a little above an iteration's real time). Each kernel's
-bytes are the minimum it must move, from what it reads and writes (V: one real volume of all planes,
-S: one spectrum volume; the lean state of cm2cl/solver/admm.py):
+bytes are the minimum it must move per iteration, from what it reads and writes (V: one real volume of
+all planes, S: one spectrum volume; the lean state of cm2cl/solver/admm.py), whatever its launches:
 
-    rhs_volume 6V (u, s, px, py, pz in; g out)        update_w 4V (x, previous x, s in; s out)
+    rhs_volume 6V per launch (u, s, px, py, pz in; g out) update_w 4V (x, previous x, s in; s out)
     tv_residual 6V the first time (x, p in; r, z out), 5V after (z, p in; r out)
-    tv_dual_step 7V (p, r in; p out)                   tv_finish 9V (u, x, z, p, s in; u, next rhs out)
+    tv_dual_step 7V per TV iteration (p, r in; p out)  tv_finish 9V (u, x, z, p, s in; u, next rhs out)
     (rhs_volume runs only where tv_finish's rhs does not apply: the first iteration, changed penalties)
-    xstep_accumulate 2S (spectra, PSF spectra in) xstep_solve 3S (spectra, PSF spectra in; out)
-    FFT kernels of cm2cl's own backend: rows_r2c V + S, cols 2S, rows_c2r S + V; where xstep_solve runs
-    inside the inverse's column pass (ADMMSolver.fuse_xstep), that pass also reads the PSF spectra (+S)
+    xstep_accumulate 2S (spectra, PSF spectra in; on CPUs in runs of ACC_PLANES planes, several launches)
+    xstep_solve 3S per launch (spectra, PSF spectra in; out)
+    FFT kernels of cm2cl's own backend, per volume transform: rows_r2c V + S, cols 2S, rows_c2r S + V;
+    each iteration transforms the volume and one plane each way (the data split's H x and its rhs):
+    rows_r2c and rows_c2r (V + S)(1 + 1/nz), cols 4S(1 + 1/nz); where xstep_solve runs inside the
+    inverse's column pass (ADMMSolver.fuse_xstep), that pass also reads the PSF spectra (+S)
 
 Writes a section of docs/benchmarks.md.
 
@@ -40,11 +43,16 @@ from cm2cl.solver.admm import ADMMSolver  # noqa: E402
 from cm2cl.solver.params import ADMMParams  # noqa: E402
 
 
-def bytes_model(tv_iters):
-    """Bytes per call in units of (V, S), by kernel name."""
-    return {"rhs_volume": (6, 0), "update_w": (4, 0), "tv_residual": ((6 + 5 * (tv_iters - 1)) / tv_iters, 0),
-            "tv_dual_step": (7, 0), "tv_finish": (9, 0), "xstep_accumulate": (0, 2), "xstep_solve": (0, 3),
-            "rows_r2c": (1, 1), "cols": (0, 2), "rows_c2r": (1, 1)}
+def bytes_model(tv_iters, nz, fused):
+    """Bytes per iteration in units of (V, S), by kernel name; rhs_volume and xstep_solve: per launch
+    (they run on some iterations, or only unfused)."""
+    plane = 1 + 1 / nz   # the volume and one plane
+    return {"update_w": (4, 0), "tv_residual": (6 + 5 * (tv_iters - 1), 0),
+            "tv_dual_step": (7 * tv_iters, 0), "tv_finish": (9, 0), "xstep_accumulate": (0, 2),
+            "rows_r2c": (plane, plane), "cols": (0, 4 * plane + (1 if fused else 0)), "rows_c2r": (plane, plane)}
+
+
+PER_LAUNCH = {"rhs_volume": (6, 0), "xstep_solve": (0, 3)}
 
 
 class KernelTimer:
@@ -96,17 +104,16 @@ def measure(size: str, iters: int, backend: str, bw: float):
         kt.__exit__()
     V = nz * s.P[0] * s.P[1] * s.dtype.itemsize
     S = nz * int(np.prod(s.parts[0].spec_plane)) * 2 * s.dtype.itemsize
-    model = bytes_model(p.tv_iters)
     fused = s.fuse_xstep and all(part.plan(b - a, s.backend).fuses_xstep for part in s.parts for a, b in part.bounds)
+    model = bytes_model(p.tv_iters, nz, fused)
     rows, total = [], 0.0
     for name in sorted(kt.seconds, key=lambda n: -kt.seconds[n]):
         sec = kt.seconds[name] / iters
         total += sec
         calls = kt.calls[name] / iters
-        if name in model:
-            nbytes = (model[name][0] * V + model[name][1] * S) * calls
-            if name == "cols" and fused:
-                nbytes += S
+        if name in model or name in PER_LAUNCH:
+            v, sp = PER_LAUNCH[name] if name in PER_LAUNCH else model[name]
+            nbytes = (v * V + sp * S) * (calls if name in PER_LAUNCH else 1)
             rate = nbytes / sec
             rows.append([name, f"{calls:g}", f"{sec * 1e3:.1f}", f"{nbytes / 1e6:.0f}", f"{rate / 1e9:.1f}",
                          f"{rate / bw:.2f}"])
