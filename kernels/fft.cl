@@ -385,27 +385,24 @@ __kernel void rows_c2r(__global real_t *dst, __global const cplx_t *src,
 #ifdef FFT_HALF
     const int px = 2 * FFT_N, w = FFT_N + 1;
     const int nb = blocked ? FFT_N / FFT_VEC : 0;
+    /* X_0 .. X_{N-1} into b (free until the passes), read front to back only: reading X_{N-k} next to
+     * X_k from global memory made a second stream running backwards, where this CPU's loads stalled
+     * (perf: 20% of rows_c2r's samples on that one load); X_N, which only k = 0 needs, in xn */
     for (int kb = j0; kb < nb; kb += js) {
-        /* X_k for k = k0 + t, and X_{N-k} = X_{N-k0-t}: the block from N-k0-(FFT_VEC-1), reversed */
-        const int k0 = kb * FFT_VEC;
-        fc_t m[FFT_VEC], mn[FFT_VEC];
-        for (int q = 0; q < FFT_VEC; ++q) {
-            m[q] = FC_LOAD(src + line[q] * w + k0);
-            mn[q] = FC_LOAD(src + line[q] * w + FFT_N - k0 - (FFT_VEC - 1));
-        }
+        fc_t m[FFT_VEC];
+        for (int q = 0; q < FFT_VEC; ++q) m[q] = FC_LOAD(src + line[q] * w + kb * FFT_VEC);
         fc_transpose(m);
-        fc_transpose(mn);
-        for (int t = 0; t < FFT_VEC; ++t)
-            a[(k0 + t) * stride] = tangled(m[t], mn[FFT_VEC - 1 - t], k0 + t, twr);
+        for (int t = 0; t < FFT_VEC; ++t) b[(kb * FFT_VEC + t) * stride] = m[t];
     }
     for (int k = nb * FFT_VEC + j0; k < FFT_N; k += js) {
-        fc_parts un;
-        for (int q = 0; q < FFT_VEC; ++q) {
-            u.c[q] = src[line[q] * w + k];
-            un.c[q] = src[line[q] * w + FFT_N - k];
-        }
-        a[k * stride] = tangled(u.v, un.v, k, twr);
+        for (int q = 0; q < FFT_VEC; ++q) u.c[q] = src[line[q] * w + k];
+        b[k * stride] = u.v;
     }
+    fc_parts xn;
+    for (int q = 0; q < FFT_VEC; ++q) xn.c[q] = src[line[q] * w + FFT_N];
+    barrier(CLK_LOCAL_MEM_FENCE);
+    for (int k = j0; k < FFT_N; k += js)
+        a[k * stride] = tangled(b[k * stride], k == 0 ? xn.v : b[(FFT_N - k) * stride], k, twr);
 #else
     const int px = FFT_N, w = FFT_N / 2 + 1;
     for (int k = j0; k < FFT_N; k += js) {
