@@ -68,14 +68,19 @@ inline real_t group_sum(real_t v, __local real_t *scratch) {
     ((mu_u) * (u) - (eta) + (mu_w) * split_w(s, c, mu_s) - split_rho(s, c, mu_s))
 
 /* ---- Row kernels: the volume kernels of the iteration (stencils and update-and-reduce) ------------
- * A work-item handles VW neighbouring x as one vector, for a block of `rows` rows, and for each row
- * walks all planes of the slab: values of a plane that the next plane's differences need again (the
- * axial neighbour) are carried in registers, so each volume is read once. The reducing kernels add
- * their sums into one partial per work-item (reduce_partials adds those up): no barriers, no local
- * memory. Global size (x blocks, row blocks).
+ * A work-item handles VW neighbouring x as one vector (a block of x), for a block of `rows` rows of
+ * every plane of the slab; values of the plane below or above (the axial neighbour) are loaded again
+ * where needed. The reducing kernels add their sums into one partial per work-item (reduce_partials adds
+ * those up): no barriers, no local memory.
  * VW is a build define (cm2cl/device/kernels.py): 32 bytes of reals on CPUs, where PoCL compiles a
  * work-item's vector code to SIMD instructions (work-items with loops or barriers stay scalar, 5x
  * slower: docs/benchmarks.md), and 1 on GPUs, where neighbouring work-items read neighbouring x.
+ * The walk (row_item): on CPUs (VW > 1: ROW_WALK) a work-item takes whole rows, every x block of a
+ * plane's row before the next plane's, so that the CPU's prefetchers follow a few sequential streams
+ * (walking the planes inside each x block touched a new page in every volume and plane at each step: 5
+ * volumes x 16 planes of streams, and tv_dual_step then took ~1.4x and tv_residual ~1.2x as long,
+ * docs/benchmarks.md); global size (row blocks). On GPUs a work-item per x block walks the planes;
+ * global size (x blocks, row blocks).
  * Lanes past the row's end (x >= nx: `cnt` = nx - x0 lanes are real) load the row's last element,
  * are never written and are masked out of the sums. */
 #ifndef VW
@@ -167,19 +172,36 @@ inline real_t lanes_sum(const realv v) {
 #endif
 }
 
-/* The work-item's place: x0 (first x), cnt (real lanes), rows [y0, y1), and its partial index g;
- * returns 0 for the work-items past the last x block (the launch pads dimension 0). */
+#if VW > 1
+#define ROW_WALK 1
+#endif
+
+/* The work-item's place: x blocks [xb0, xb1) (block xb: x0 = xb VW, cnt = nx - x0 real lanes), rows
+ * [y0, y1), and its partial index g; returns 0 for the work-items past the last block (the launch pads
+ * dimension 0). */
 inline int row_item(const int nx, const int ny, const int rows,
-                    int *x0, int *cnt, int *y0, int *y1, size_t *g) {
+                    int *xb0, int *xb1, int *y0, int *y1, size_t *g) {
     const int nxb = (nx + VW - 1) / VW;
+#ifdef ROW_WALK
+    const int yb = get_global_id(0);
+    *xb0 = 0;
+    *xb1 = nxb;
+    *g = yb;
+#else
     const int xb = get_global_id(0), yb = get_global_id(1);
     if (xb >= nxb) return 0;
-    *x0 = xb * VW;
-    *cnt = nx - *x0;
+    *xb0 = xb;
+    *xb1 = xb + 1;
+    *g = (size_t)xb + (size_t)nxb * (size_t)yb;
+#endif
     *y0 = yb * rows;
     *y1 = min(ny, *y0 + rows);
-    *g = (size_t)xb + (size_t)nxb * (size_t)yb;
-    return 1;
+    return *y0 < ny;
+}
+
+/* The index in a slab of plane z, row y, x0 */
+inline size_t slab_index(const int z, const int y, const int x0, const int ny, const int nx) {
+    return ((size_t)z * ny + y) * nx + x0;
 }
 
 /* partials[(slot0 + j) * stride + g] += v[j] for j < k (zeroed once per iteration; slabs accumulate) */
@@ -190,7 +212,7 @@ inline void add_partials(__global real_t *partials, const int stride, const size
 
 /* Forward differences of v at the VW elements i.. = (z*ny + y)*nx + x0.. of a slab (vc: v there),
  * Neumann boundary (zero past the last index): the lateral ones here, the axial one
- * aw (next_plane(...) - vc) by the caller, who carries the next plane to the next step. */
+ * aw (next_plane(...) - vc) by the caller. */
 inline void grad_xy(__global const real_t *v, const size_t i, const realv vc, const int cnt, const int y,
                     const int ny, const int nx, realv *gx, realv *gy) {
     /* the row's last element is its own right neighbour (clamped load): gx = 0 there */
@@ -208,30 +230,31 @@ inline realv next_plane(__global const real_t *v, __global const real_t *v_next,
     return vc;
 }
 
-/* div p = -grad^T p at the VW elements i.. of plane z, row y of a slab of `planes` planes, p = (px, py,
- * pz) the TV dual: backward differences, p taken as 0 past the last index (the slab's last plane is
- * the last when has_next is 0). *pzb: pz of the plane before (plane_before for the slab's first plane),
- * carried: it becomes this plane's pz. Always inlined: PoCL 3.1 kept it a function called per vector of
- * every plane (perf: half of tv_residual's samples inside it). Inlined, tv_finish took ~10% less (min of
- * 15 alternating launches: 9.5 vs 10.8 ms on 16 x 540 x 512, 13.5 vs 14.8 ms on 16 x 648 x 864) and
- * tv_residual the same. */
-inline __attribute__((always_inline)) realv div_step(__global const real_t *px, __global const real_t *py, __global const real_t *pz,
-                      const size_t i, const int x0, const int cnt, const int y, const int z, const int planes,
-                      const int has_next, const int ny, const int nx, const real_t aw, realv *pzb) {
-    const realv pxv = load_row(px, i, cnt);
-    realv d = lanes_below(pxv, cnt - 1) - from_left(x0 > 0 ? px[i - 1] : (real_t)0, pxv);
-    if (y < ny - 1) d += load_row(py, i, cnt);
-    if (y > 0) d -= load_row(py, i - nx, cnt);
-    const realv pzc = load_row(pz, i, cnt);
-    d += aw * ((z == planes - 1 && !has_next ? (realv)0 : pzc) - *pzb);
-    *pzb = pzc;
-    return d;
-}
-
 /* pz of the plane before a slab's first plane at its elements i0.. (0 when has_prev is 0) */
 inline realv plane_before(__global const real_t *pz_prev, const int has_prev, const int prev_planes,
                           const size_t plane, const size_t i0, const int cnt) {
     return has_prev ? load_row(pz_prev, (size_t)(prev_planes - 1) * plane + i0, cnt) : (realv)0;
+}
+
+/* div p = -grad^T p at the VW elements i.. of plane z, row y of a slab of `planes` planes, p = (px, py,
+ * pz) the TV dual: backward differences, p taken as 0 past the last index (the slab's last plane is
+ * the last when has_next is 0); pz of the plane before from the slab, or for its first plane from
+ * pz_prev (plane_before). Always inlined: PoCL 3.1 kept it a function called per vector of every plane
+ * (perf: half of tv_residual's samples inside it). Inlined, tv_finish took ~10% less (min of 15
+ * alternating launches: 9.5 vs 10.8 ms on 16 x 540 x 512, 13.5 vs 14.8 ms on 16 x 648 x 864) and
+ * tv_residual the same. */
+inline __attribute__((always_inline)) realv div_step(
+        __global const real_t *px, __global const real_t *py, __global const real_t *pz,
+        __global const real_t *pz_prev, const int has_prev, const int prev_planes, const size_t i,
+        const size_t plane, const int x0, const int cnt, const int y, const int z, const int planes,
+        const int has_next, const int ny, const int nx, const real_t aw) {
+    const realv pxv = load_row(px, i, cnt);
+    realv d = lanes_below(pxv, cnt - 1) - from_left(x0 > 0 ? px[i - 1] : (real_t)0, pxv);
+    if (y < ny - 1) d += load_row(py, i, cnt);
+    if (y > 0) d -= load_row(py, i - nx, cnt);
+    const realv pzb = z > 0 ? load_row(pz, i - plane, cnt) : plane_before(pz_prev, has_prev, prev_planes, plane, i, cnt);
+    d += aw * ((z == planes - 1 && !has_next ? (realv)0 : load_row(pz, i, cnt)) - pzb);
+    return d;
 }
 
 /* ---- Complex row vectors: CW = max(VW/2, 1) neighbouring complex values per work-item -------------

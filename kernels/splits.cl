@@ -18,38 +18,40 @@ __kernel void update_w(__global const real_t *x, __global const real_t *x_next, 
                        const real_t l1_s, const real_t mu_s, const real_t aw, const int iso,
                        const int planes, const int ny, const int nx, const int rows,
                        __global real_t *partials, const int pstride, const int slot0) {
-    int x0, cnt, y0, y1;
+    int xb0, xb1, y0, y1;
     size_t g;
-    if (!row_item(nx, ny, rows, &x0, &cnt, &y0, &y1, &g)) return;
+    if (!row_item(nx, ny, rows, &xb0, &xb1, &y0, &y1, &g)) return;
     const size_t plane = (size_t)ny * nx;
     realv a0 = 0, a1 = 0, a2 = 0, a3 = 0, a4 = 0, a5 = 0, a6 = 0, a7 = 0;
-    for (int y = y0; y < y1; y++) {
-        size_t i = (size_t)y * nx + x0;
-        realv xi = load_row(x, i, cnt);
-        for (int z = 0; z < planes; z++, i += plane) {
+    for (int y = y0; y < y1; y++)
+        for (int z = 0; z < planes; z++) {
             const real_t lw = l1w[z];   /* the plane's weight of the l1 term */
             const real_t c = l1 * lw, cs = l1_s * lw;
-            const realv si = load_row(s, i, cnt);
-            const realv sn = xi + split_rho(si, cs, mu_s) / mu_w;
-            const realv wn = split_w(sn, c, mu_w), rn = split_rho(sn, c, mu_w);
-            const realv dx = xi - load_row(x_old, i, cnt), pw = xi - wn, dw = wn - split_w(si, cs, mu_s);
-            store_row(sn, s, i, cnt);
-            const realv xn = next_plane(x, x_next, has_next, i, plane, z, planes, cnt, xi);
-            realv gx, gy;
-            grad_xy(x, i, xi, cnt, y, ny, nx, &gx, &gy);
-            const realv gz = aw * (xn - xi);
-            const realv tv = iso ? sqrt(gx * gx + gy * gy + gz * gz) : fabs(gx) + fabs(gy) + fabs(gz);
-            a0 += lanes_below(dx * dx, cnt);
-            a1 += lanes_below(xi * xi, cnt);
-            a2 += lanes_below(lw * fabs(xi), cnt);
-            a3 += lanes_below(tv, cnt);
-            a4 += lanes_below(pw * pw, cnt);
-            a5 += lanes_below(dw * dw, cnt);
-            a6 += lanes_below(wn * wn, cnt);
-            a7 += lanes_below(rn * rn, cnt);
-            xi = xn;
+            realv b0 = 0, b1 = 0, b2 = 0, b3 = 0, b4 = 0, b5 = 0, b6 = 0, b7 = 0;   /* one plane's row */
+            for (int xb = xb0; xb < xb1; xb++) {
+                const int x0 = xb * VW, cnt = nx - x0;
+                const size_t i = slab_index(z, y, x0, ny, nx);
+                const realv xi = load_row(x, i, cnt), si = load_row(s, i, cnt);
+                const realv sn = xi + split_rho(si, cs, mu_s) / mu_w;
+                const realv wn = split_w(sn, c, mu_w), rn = split_rho(sn, c, mu_w);
+                const realv dx = xi - load_row(x_old, i, cnt), pw = xi - wn, dw = wn - split_w(si, cs, mu_s);
+                store_row(sn, s, i, cnt);
+                const realv xn = next_plane(x, x_next, has_next, i, plane, z, planes, cnt, xi);
+                realv gx, gy;
+                grad_xy(x, i, xi, cnt, y, ny, nx, &gx, &gy);
+                const realv gz = aw * (xn - xi);
+                const realv tv = iso ? sqrt(gx * gx + gy * gy + gz * gz) : fabs(gx) + fabs(gy) + fabs(gz);
+                b0 += lanes_below(dx * dx, cnt);
+                b1 += lanes_below(xi * xi, cnt);
+                b2 += lanes_below(lw * fabs(xi), cnt);
+                b3 += lanes_below(tv, cnt);
+                b4 += lanes_below(pw * pw, cnt);
+                b5 += lanes_below(dw * dw, cnt);
+                b6 += lanes_below(wn * wn, cnt);
+                b7 += lanes_below(rn * rn, cnt);
+            }
+            a0 += b0; a1 += b1; a2 += b2; a3 += b3; a4 += b4; a5 += b5; a6 += b6; a7 += b7;
         }
-    }
     const real_t sums[8] = {lanes_sum(a0), lanes_sum(a1), lanes_sum(a2), lanes_sum(a3),
                             lanes_sum(a4), lanes_sum(a5), lanes_sum(a6), lanes_sum(a7)};
     add_partials(partials, pstride, g, slot0, sums, 8);
@@ -79,27 +81,29 @@ __kernel void update_v(__global real_t *v, __global real_t *xi, __global const r
     /* cty: the measurement embedded in the padded grid; cw: each pixel's weight in the data term (1 on
        the sensor, 0 outside it and on masked pixels): v = (cw y + mu_v Hx + xi) / (cw + mu_v).
        A row kernel (common.cl) over the one plane. */
-    int x0, cnt, y0, y1;
+    int xb0, xb1, y0, y1;
     size_t g;
-    if (!row_item(px, py, rows, &x0, &cnt, &y0, &y1, &g)) return;
+    if (!row_item(px, py, rows, &xb0, &xb1, &y0, &y1, &g)) return;
     realv a0 = 0, a1 = 0, a2 = 0, a3 = 0, a4 = 0, a5 = 0;
-    for (int y = y0; y < y1; y++) {
-        const size_t i = (size_t)y * px + x0;
-        const realv h = load_row(hx, i, cnt), m = load_row(cw, i, cnt), t = load_row(cty, i, cnt);
-        const realv xo = load_row(xi, i, cnt);
-        const realv vn = (m * t + mu_v * h + xo) / (m + mu_v);
-        const realv pv = h - vn, dv = vn - load_row(v, i, cnt);
-        const realv xn = xo + mu_v * pv;
-        const realv d = h - t;
-        store_row(xn, xi, i, cnt);
-        store_row(vn, v, i, cnt);
-        a0 += lanes_below(pv * pv, cnt);
-        a1 += lanes_below(dv * dv, cnt);
-        a2 += lanes_below(m * d * d, cnt);
-        a3 += lanes_below(h * h, cnt);
-        a4 += lanes_below(vn * vn, cnt);
-        a5 += lanes_below(xn * xn, cnt);
-    }
+    for (int y = y0; y < y1; y++)
+        for (int xb = xb0; xb < xb1; xb++) {
+            const int x0 = xb * VW, cnt = px - x0;
+            const size_t i = slab_index(0, y, x0, py, px);
+            const realv h = load_row(hx, i, cnt), m = load_row(cw, i, cnt), t = load_row(cty, i, cnt);
+            const realv xo = load_row(xi, i, cnt);
+            const realv vn = (m * t + mu_v * h + xo) / (m + mu_v);
+            const realv pv = h - vn, dv = vn - load_row(v, i, cnt);
+            const realv xn = xo + mu_v * pv;
+            const realv d = h - t;
+            store_row(xn, xi, i, cnt);
+            store_row(vn, v, i, cnt);
+            a0 += lanes_below(pv * pv, cnt);
+            a1 += lanes_below(dv * dv, cnt);
+            a2 += lanes_below(m * d * d, cnt);
+            a3 += lanes_below(h * h, cnt);
+            a4 += lanes_below(vn * vn, cnt);
+            a5 += lanes_below(xn * xn, cnt);
+        }
     const real_t sums[6] = {lanes_sum(a0), lanes_sum(a1), lanes_sum(a2), lanes_sum(a3), lanes_sum(a4),
                             lanes_sum(a5)};
     add_partials(partials, pstride, g, slot0, sums, 6);

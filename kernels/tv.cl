@@ -18,25 +18,26 @@ __kernel void tv_residual(__global real_t *g,
                           const int has_next, __global const real_t *x, __global real_t *z, const int first,
                           const real_t tau, const real_t inv_tau, const real_t aw,
                           const int planes, const int ny, const int nx, const int rows) {
-    int x0, cnt, y0, y1;
+    int xb0, xb1, y0, y1;
     size_t item;
-    if (!row_item(nx, ny, rows, &x0, &cnt, &y0, &y1, &item)) return;
+    if (!row_item(nx, ny, rows, &xb0, &xb1, &y0, &y1, &item)) return;
     const size_t plane = (size_t)ny * nx;
-    for (int y = y0; y < y1; y++) {
-        size_t i = (size_t)y * nx + x0;
-        realv pzb = plane_before(pz_prev, has_prev, prev_planes, plane, i, cnt);
-        for (int zz = 0; zz < planes; zz++, i += plane) {
-            const realv d = div_step(px, py, pz, i, x0, cnt, y, zz, planes, has_next, ny, nx, aw, &pzb);
-            realv zv;
-            if (first) {
-                zv = load_row(x, i, cnt) + tau * d;
-                store_row(zv, z, i, cnt);
-            } else {
-                zv = load_row(z, i, cnt);
+    for (int y = y0; y < y1; y++)
+        for (int zz = 0; zz < planes; zz++)
+            for (int xb = xb0; xb < xb1; xb++) {
+                const int x0 = xb * VW, cnt = nx - x0;
+                const size_t i = slab_index(zz, y, x0, ny, nx);
+                const realv d = div_step(px, py, pz, pz_prev, has_prev, prev_planes, i, plane, x0, cnt, y, zz,
+                                         planes, has_next, ny, nx, aw);
+                realv zv;
+                if (first) {
+                    zv = load_row(x, i, cnt) + tau * d;
+                    store_row(zv, z, i, cnt);
+                } else {
+                    zv = load_row(z, i, cnt);
+                }
+                store_row(d - zv * inv_tau, g, i, cnt);
             }
-            store_row(d - zv * inv_tau, g, i, cnt);
-        }
-    }
 }
 
 /* p <- P(p + step grad g) over one slab; g_next is the next slab of g when has_next. */
@@ -44,33 +45,33 @@ __kernel void tv_dual_step(__global real_t *px, __global real_t *py, __global re
                            __global const real_t *g, __global const real_t *g_next, const int has_next,
                            const real_t step, const real_t aw, const int iso,
                            const int planes, const int ny, const int nx, const int rows) {
-    int x0, cnt, y0, y1;
+    int xb0, xb1, y0, y1;
     size_t item;
-    if (!row_item(nx, ny, rows, &x0, &cnt, &y0, &y1, &item)) return;
+    if (!row_item(nx, ny, rows, &xb0, &xb1, &y0, &y1, &item)) return;
     const size_t plane = (size_t)ny * nx;
-    for (int y = y0; y < y1; y++) {
-        size_t i = (size_t)y * nx + x0;
-        realv gc = load_row(g, i, cnt);
-        for (int z = 0; z < planes; z++, i += plane) {
-            const realv gn = next_plane(g, g_next, has_next, i, plane, z, planes, cnt, gc);
-            realv gx, gy;
-            grad_xy(g, i, gc, cnt, y, ny, nx, &gx, &gy);
-            realv a = load_row(px, i, cnt) + step * gx, b = load_row(py, i, cnt) + step * gy;
-            realv d = load_row(pz, i, cnt) + step * aw * (gn - gc);
-            gc = gn;
-            if (iso) {
-                const realv inv = (real_t)1 / fmax((realv)1, sqrt(a * a + b * b + d * d));
-                a *= inv; b *= inv; d *= inv;
-            } else {
-                a = clamp(a, (real_t)-1, (real_t)1);
-                b = clamp(b, (real_t)-1, (real_t)1);
-                d = clamp(d, (real_t)-1, (real_t)1);
+    for (int y = y0; y < y1; y++)
+        for (int z = 0; z < planes; z++)
+            for (int xb = xb0; xb < xb1; xb++) {
+                const int x0 = xb * VW, cnt = nx - x0;
+                const size_t i = slab_index(z, y, x0, ny, nx);
+                const realv gc = load_row(g, i, cnt);
+                const realv gn = next_plane(g, g_next, has_next, i, plane, z, planes, cnt, gc);
+                realv gx, gy;
+                grad_xy(g, i, gc, cnt, y, ny, nx, &gx, &gy);
+                realv a = load_row(px, i, cnt) + step * gx, b = load_row(py, i, cnt) + step * gy;
+                realv d = load_row(pz, i, cnt) + step * aw * (gn - gc);
+                if (iso) {
+                    const realv inv = (real_t)1 / fmax((realv)1, sqrt(a * a + b * b + d * d));
+                    a *= inv; b *= inv; d *= inv;
+                } else {
+                    a = clamp(a, (real_t)-1, (real_t)1);
+                    b = clamp(b, (real_t)-1, (real_t)1);
+                    d = clamp(d, (real_t)-1, (real_t)1);
+                }
+                store_row(a, px, i, cnt);
+                store_row(b, py, i, cnt);
+                store_row(d, pz, i, cnt);
             }
-            store_row(a, px, i, cnt);
-            store_row(b, py, i, cnt);
-            store_row(d, pz, i, cnt);
-        }
-    }
 }
 
 /* u' = z - tau div p and eta' = lambda_tv div p (tau = 0, TV off: u' = x, eta' = 0); z as tv_residual
@@ -87,31 +88,35 @@ __kernel void tv_finish(__global real_t *u, __global const real_t *x, __global c
                         const real_t mu_w, const real_t l1_s, __global const real_t *l1w, const real_t mu_s,
                         const int planes, const int ny, const int nx, const int rows,
                         __global real_t *partials, const int pstride, const int slot0) {
-    int x0, cnt, y0, y1;
+    int xb0, xb1, y0, y1;
     size_t g;
-    if (!row_item(nx, ny, rows, &x0, &cnt, &y0, &y1, &g)) return;
+    if (!row_item(nx, ny, rows, &xb0, &xb1, &y0, &y1, &g)) return;
     const size_t plane = (size_t)ny * nx;
     realv a0 = 0, a1 = 0, a2 = 0, a3 = 0;
-    for (int y = y0; y < y1; y++) {
-        size_t i = (size_t)y * nx + x0;
-        realv pzb = plane_before(pz_prev, has_prev, prev_planes, plane, i, cnt);
-        for (int zz = 0; zz < planes; zz++, i += plane) {
-            const realv xv = load_row(x, i, cnt);
-            realv un = xv, en = 0;
-            if (tau > 0) {
-                const realv d = div_step(px, py, pz, i, x0, cnt, y, zz, planes, has_next, ny, nx, aw, &pzb);
-                un = load_row(z, i, cnt) - tau * d;
-                en = tv * d;
+    for (int y = y0; y < y1; y++)
+        for (int zz = 0; zz < planes; zz++) {
+            realv b0 = 0, b1 = 0, b2 = 0, b3 = 0;   /* the sums of one plane's row, then added up */
+            for (int xb = xb0; xb < xb1; xb++) {
+                const int x0 = xb * VW, cnt = nx - x0;
+                const size_t i = slab_index(zz, y, x0, ny, nx);
+                const realv xv = load_row(x, i, cnt);
+                realv un = xv, en = 0;
+                if (tau > 0) {
+                    const realv d = div_step(px, py, pz, pz_prev, has_prev, prev_planes, i, plane, x0, cnt, y,
+                                             zz, planes, has_next, ny, nx, aw);
+                    un = load_row(z, i, cnt) - tau * d;
+                    en = tv * d;
+                }
+                const realv pu = xv - un, du = un - load_row(u, i, cnt);
+                store_row(un, u, i, cnt);
+                if (rhs) store_row(x_rhs(un, en, load_row(s, i, cnt), mu_u, mu_w, l1_s * l1w[zz], mu_s), t, i, cnt);
+                b0 += lanes_below(pu * pu, cnt);
+                b1 += lanes_below(du * du, cnt);
+                b2 += lanes_below(un * un, cnt);
+                b3 += lanes_below(en * en, cnt);
             }
-            const realv pu = xv - un, du = un - load_row(u, i, cnt);
-            store_row(un, u, i, cnt);
-            if (rhs) store_row(x_rhs(un, en, load_row(s, i, cnt), mu_u, mu_w, l1_s * l1w[zz], mu_s), t, i, cnt);
-            a0 += lanes_below(pu * pu, cnt);
-            a1 += lanes_below(du * du, cnt);
-            a2 += lanes_below(un * un, cnt);
-            a3 += lanes_below(en * en, cnt);
+            a0 += b0; a1 += b1; a2 += b2; a3 += b3;
         }
-    }
     const real_t sums[4] = {lanes_sum(a0), lanes_sum(a1), lanes_sum(a2), lanes_sum(a3)};
     add_partials(partials, pstride, g, slot0, sums, 4);
 }
@@ -122,16 +127,16 @@ __kernel void tv_eta(__global real_t *eta,
                      __global const real_t *pz_prev, const int has_prev, const int prev_planes,
                      const int has_next, const real_t tv, const real_t aw,
                      const int planes, const int ny, const int nx, const int rows) {
-    int x0, cnt, y0, y1;
+    int xb0, xb1, y0, y1;
     size_t item;
-    if (!row_item(nx, ny, rows, &x0, &cnt, &y0, &y1, &item)) return;
+    if (!row_item(nx, ny, rows, &xb0, &xb1, &y0, &y1, &item)) return;
     const size_t plane = (size_t)ny * nx;
-    for (int y = y0; y < y1; y++) {
-        size_t i = (size_t)y * nx + x0;
-        realv pzb = plane_before(pz_prev, has_prev, prev_planes, plane, i, cnt);
-        for (int zz = 0; zz < planes; zz++, i += plane) {
-            const realv d = div_step(px, py, pz, i, x0, cnt, y, zz, planes, has_next, ny, nx, aw, &pzb);
-            store_row(tv * d, eta, i, cnt);
-        }
-    }
+    for (int y = y0; y < y1; y++)
+        for (int zz = 0; zz < planes; zz++)
+            for (int xb = xb0; xb < xb1; xb++) {
+                const int x0 = xb * VW, cnt = nx - x0;
+                const size_t i = slab_index(zz, y, x0, ny, nx);
+                store_row(tv * div_step(px, py, pz, pz_prev, has_prev, prev_planes, i, plane, x0, cnt, y, zz,
+                                        planes, has_next, ny, nx, aw), eta, i, cnt);
+            }
 }

@@ -16,21 +16,23 @@ __kernel void rhs_volume(__global real_t *t, __global const real_t *u, __global 
                          const real_t l1_s, __global const real_t *l1w, const real_t mu_s, const real_t aw,
                          const int planes, const int ny, const int nx, const int rows) {
     /* a row kernel (common.cl) */
-    int x0, cnt, y0, y1;
+    int xb0, xb1, y0, y1;
     size_t item;
-    if (!row_item(nx, ny, rows, &x0, &cnt, &y0, &y1, &item)) return;
+    if (!row_item(nx, ny, rows, &xb0, &xb1, &y0, &y1, &item)) return;
     const size_t plane = (size_t)ny * nx;
-    for (int y = y0; y < y1; y++) {
-        size_t i = (size_t)y * nx + x0;
-        realv pzb = plane_before(pz_prev, has_prev, prev_planes, plane, i, cnt);
-        for (int z = 0; z < planes; z++, i += plane) {
-            realv eta = 0;
-            if (tv > 0) {
-                eta = tv * div_step(px, py, pz, i, x0, cnt, y, z, planes, has_next, ny, nx, aw, &pzb);
+    for (int y = y0; y < y1; y++)
+        for (int z = 0; z < planes; z++)
+            for (int xb = xb0; xb < xb1; xb++) {
+                const int x0 = xb * VW, cnt = nx - x0;
+                const size_t i = slab_index(z, y, x0, ny, nx);
+                realv eta = 0;
+                if (tv > 0) {
+                    eta = tv * div_step(px, py, pz, pz_prev, has_prev, prev_planes, i, plane, x0, cnt, y, z,
+                                        planes, has_next, ny, nx, aw);
+                }
+                store_row(x_rhs(load_row(u, i, cnt), eta, load_row(s, i, cnt), mu_u, mu_w, l1_s * l1w[z], mu_s),
+                          t, i, cnt);
             }
-            store_row(x_rhs(load_row(u, i, cnt), eta, load_row(s, i, cnt), mu_u, mu_w, l1_s * l1w[z], mu_s), t, i, cnt);
-        }
-    }
 }
 
 /* Right-hand side of the v split (one padded plane):  r = mu_v v - xi. */

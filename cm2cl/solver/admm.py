@@ -249,36 +249,41 @@ class ADMMSolver:
         kernels.launch(part.rt, part.k[name], (self.P[1], self.P[0], int(planes)), *args)
 
     def _row_layout(self, part, vw: int, rows: int | None = None):
-        """The row kernels' work on ``part`` (kernels/common.cl): ``vw`` reals per work-item (the
-        kernels' VW, built in) and ``rows`` rows each (by default as few as keep the partials per sum
-        within PARTIALS, and each work-item at ROW_ELEMENTS or more over the planes the device holds: a
-        streamed part's slab, a resident part's planes, however many slabs they are in), and the
-        partials buffer that layout needs."""
+        """The row kernels' work on ``part`` (kernels/common.cl): ``vw`` reals per x block (the kernels'
+        VW, built in; VW > 1 walks whole rows per work-item, VW = 1 one x per work-item) and ``rows`` rows
+        per work-item (by default as few as keep the partials per sum within PARTIALS, and each work-item
+        at ROW_ELEMENTS or more over the planes the device holds: a streamed part's slab, a resident
+        part's planes, however many slabs they are in), and the partials buffer that layout needs."""
         ny, nx = self.P
-        nxb = -(-nx // vw)
+        # work-items per row block, and the elements of one row of one plane each takes
+        per_row, width = (1, nx) if vw > 1 else (-(-nx // vw), vw)
         # the partials go with the planes the device holds (a streamed slab; a resident part's planes)
         held = part.max_planes if part.streamed else part.z1 - part.z0
         if rows is None:
-            rows = min(ny, max(-(-ROW_ELEMENTS // (vw * held)), -(-nxb * ny // PARTIALS)))
-        part.vw, part.rows = vw, int(rows)
+            rows = min(ny, max(-(-ROW_ELEMENTS // (width * held)), -(-per_row * ny // PARTIALS)))
+        part.vw, part.rows, part.row_items = vw, int(rows), per_row
         part.cw = max(vw // 2, 1)   # complex values per work-item of xstep_accumulate, xstep_solve
         part.acc_planes = ACC_PLANES if part.rt.caps.kind == "CPU" else None   # None: a slab per launch
         part.k.update({n: kernels.kernel(part.rt, f, n, self.dtype, {"VW": vw}) for f, n in ROW_KERNELS})
         part.local = kernels.work_group_size(part.rt, part.k["reduce_partials"])
-        part.pstride = nxb * -(-ny // part.rows)   # one partial per work-item and sum
+        part.pstride = per_row * -(-ny // part.rows)   # one partial per work-item and sum
         part.partials = part.rt.zeros(NSLOTS * part.pstride, self.dtype)
+
+    def _row_range(self, part, rows: int) -> tuple:
+        """Global size of a row kernel launch with ``rows`` rows per work-item: (row blocks) where a
+        work-item walks whole rows (VW > 1), else (x blocks, row blocks)."""
+        blocks = -(-self.P[0] // rows)
+        return (blocks,) if part.vw > 1 else (part.row_items, blocks)
 
     def _row_grid(self, part, name, *args):
         """Launch a row kernel without sums over a slab (``args``: those before ``rows``), a row
         per work-item (on GPUs, VW = 1: a work-item per element of a plane, walking the planes)."""
-        ny, nx = self.P
-        kernels.launch(part.rt, part.k[name], (-(-nx // part.vw), ny), *args, np.int32(1))
+        kernels.launch(part.rt, part.k[name], self._row_range(part, 1), *args, np.int32(1))
 
     def _rows(self, part, name, slot, *args):
         """Launch a fused update + reduction (a row kernel) over a slab; its sums go to the
         partials of slots slot...; ``args``: the kernel's arguments before ``rows``."""
-        ny, nx = self.P
-        kernels.launch(part.rt, part.k[name], (-(-nx // part.vw), -(-ny // part.rows)), *args,
+        kernels.launch(part.rt, part.k[name], self._row_range(part, part.rows), *args,
                        np.int32(part.rows), part.partials.data, np.int32(part.pstride), np.int32(slot))
 
     def _next(self, i, j, name):
