@@ -306,14 +306,11 @@ def test_fused_x_step_inverse_gives_the_same_iterates(rt):
     assert np.linalg.norm(out[0] - r0.volume_padded) / np.linalg.norm(r0.volume_padded) < tol
 
 
-@pytest.mark.parametrize("dtype", [np.float32, np.float64])
 def test_accumulate_in_runs_of_planes_gives_the_same_iterates(rt, dtype):
     """xstep_accumulate in runs of planes (ACC_PLANES on CPUs; here 1, 3 and 7 planes over slabs of 7 and
     4 + 3 planes) continues the Kahan sum from what the previous run stored: the same additions, so the
     same volume bit for bit as one launch per slab, and the launches are counted (a run that dropped or
     repeated a plane would change the sum)."""
-    if dtype == np.float64 and not rt.caps.fp64:
-        pytest.skip("no float64 on this device")
     psf, _, y = bead_problem(5, nz=7, emitters=((0, 10, 12), (3, 20, 30), (6, 5, 25)))
     kw = dict(l1=1e-3, tv=1e-3, max_iter=6, tol=0)
     out = {}
