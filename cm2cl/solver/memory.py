@@ -113,9 +113,10 @@ def iteration_bytes(nz, padded_shape, dtype, backend, tv_iters, lean=False) -> i
 
 
 #: seconds per iteration over the bandwidth floor (iteration_bytes / copy rate) of cm2cl's kernels,
-#: measured on PoCL (2-core AVX-512 CPU, docs/benchmarks.md "ADMM iteration", iterations 11 on, demo
-#: size: 2.0 in the table's run, 1.8-2.3 in the runs of that day; this floor counts the fused x step, the
-#: unstored B and the rhs that TV finish makes); GPUs not measured
+#: measured on Debian's PoCL 3.1 (2-core AVX-512 CPUs, docs/benchmarks.md "ADMM iteration", iterations
+#: 11 on, demo size: 1.8-2.3 on an AMD EPYC, 1.5 on an Intel Xeon; this floor counts the fused x step,
+#: the unstored B and the rhs that TV finish makes); the larger, so that estimates do not promise too
+#: much; GPUs not measured
 KERNEL_FLOOR_RATIO = 2.1
 
 
