@@ -72,6 +72,17 @@ def test_scoring_prefers_gpus():
     assert gpu.score > cpu.score
 
 
+def test_device_table_prints_whole_names():
+    """A long name (PoCL's CPU names run past 40 characters) is printed whole, so that the fragment a
+    user copies from the table selects the device."""
+    name = "pthread-skylake-avx512-Intel(R) Xeon(R) Processor @ 2.10GHz"
+    caps = device.Capabilities(index=3, name=name, platform="p", kind="CPU", fp64=True, global_mem=2**30,
+                               max_alloc=2**28, max_work_group_size=256, compute_units=4, local_mem=2**15,
+                               opencl_version="3.0")
+    rows = runtime.format_table([caps], chosen=3).splitlines()
+    assert len(rows) == 3 and rows[2].startswith("*3") and name in rows[2]
+
+
 def test_devices_command_prints_table(rt, capsys):
     assert main(["devices"]) == 0
     out = capsys.readouterr().out

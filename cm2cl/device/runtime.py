@@ -298,7 +298,8 @@ def get_runtime(device=None) -> Runtime:
 
 def format_table(caps: list[Capabilities], chosen: int | None = None, compiles=None) -> str:
     """Plain-text table of devices, as printed by ``cm2cl devices``; ``compiles`` maps a device
-    index to (ok, reason) from :func:`compiler_works`."""
+    index to (ok, reason) from :func:`compiler_works`. Device names are printed whole: users pick a
+    device by a fragment of its name (``--device``, ``CM2CL_DEVICE``)."""
     head = ["#", "device", "implementation", "type", "fp64", "global mem", "max buffer", "max wg", "CUs",
             "compiles"]
     rows = []
@@ -306,7 +307,7 @@ def format_table(caps: list[Capabilities], chosen: int | None = None, compiles=N
         mark = "*" if chosen is not None and c.index == chosen else " "
         ok = (compiles or {}).get(c.index)
         rows.append([
-            f"{mark}{c.index}", c.name[:36], c.implementation[:52], c.kind, "yes" if c.fp64 else "no",
+            f"{mark}{c.index}", c.name, c.implementation[:52], c.kind, "yes" if c.fp64 else "no",
             f"{c.global_mem / 2**30:.1f} GiB", f"{c.max_alloc / 2**30:.2f} GiB",
             str(c.max_work_group_size), str(c.compute_units),
             "?" if ok is None else ("yes" if ok[0] else "NO: " + ok[1][:60]),
