@@ -116,7 +116,9 @@ def main(argv=None):
             f"the median of {RUNS} device solves (numpy: one); each solve right after a copy kernel's rate "
             f"({min(bws) / 1e9:.1f}-{max(bws) / 1e9:.1f} GB/s in this run): 'bandwidth floor ms' at the median "
             f"rate, 'x floor' the median of the solves' own ratios; 'device MiB' counts the buffers cm2cl allocates (FFT libraries may add "
-            f"scratch); '(lean)': the lean layout (`lean=True`: one slab of x spectra, one more forward FFT per "
+            f"scratch): the depth planes' and the plane buffers' (v, xi, hx, the rhs plane, halos, R, S: a fixed cost of 12-15 "
+            f"planes); 'target MiB' the depth planes' alone (issue 10: <= 7 real volumes + the PSF spectra per plane, what the "
+            f"lean layout allocates per plane; section 'The lean layout'); '(lean)': the lean layout (`lean=True`: one slab of x spectra, one more forward FFT per "
             f"iteration, counted in its floor), which the planner takes where the whole state does not fit. numpy = `cm2cl.reference.admm(dtype=float32, workers=-1)`. "
             f"`python tools/bench_admm.py`\n\n" + markdown_table(head, rows))
     print(text)
