@@ -7,7 +7,8 @@ import pytest
 from scipy.ndimage import gaussian_filter
 
 from cm2cl import reference as ref
-from cm2cl.solver.admm import ADMMSolver, reconstruct
+from cm2cl.solver.admm import ADMMSolver
+from cm2cl.solver.api import reconstruct
 from cm2cl.errors import DeviceError
 from cm2cl.solver.params import ADMMParams
 

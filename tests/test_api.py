@@ -9,7 +9,7 @@ import pytest
 
 import cm2cl
 from cm2cl.errors import InputError
-from cm2cl.solver import admm
+from cm2cl.solver import api as admm
 from test_admm import bead_problem
 
 

@@ -141,7 +141,7 @@ def reconstruct_tiled(measurement, psf, tile, halo=None, *, progress=None, **kw)
     doc). ``kw`` are :func:`cm2cl.reconstruct`'s (weights l1 / tv / *_noise_ratio / l1_plane_power,
     iterations, device, dtype, ...). Returns (volume (nz, My, Mx) in the caller's units, info)."""
     from .. import validate
-    from ..solver.admm import reconstruct
+    from ..solver.api import reconstruct
     from ..solver.control import ProblemScale
     from ..solver.params import ADMMParams
 
