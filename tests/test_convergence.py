@@ -9,7 +9,7 @@ import pytest
 
 import cm2cl
 from cm2cl import reference as ref
-from cm2cl.solver.control import NOISE_FLOOR, Control, ProblemScale, noise_sigma
+from cm2cl.solver.control import NOISE_FLOOR, Control, ProblemScale, SplitStats, noise_sigma
 from cm2cl.solver.params import ADMMParams
 from test_admm import bead_problem
 
@@ -78,7 +78,11 @@ def _norms(r, s, mu, **over):
     d = dict(data2=1.0, l1=1.0, tv=1.0, dx2=1e-2, x2=1.0, rv2=1e-6, dv2=1e-6, hx2=1.0, v2=1.0, xi2=1.0,
              ru2=r**2, du2=(s / mu) ** 2, rw2=r**2, dw2=(s / mu) ** 2, w2=1.0, rho2=1.0, u2=1.0, eta2=1.0)
     d.update(over)
-    return d
+    return {"dx2": d["dx2"], "x2": d["x2"],
+            "splits": {"v": SplitStats(d["rv2"], d["dv2"], d["hx2"], d["v2"], d["xi2"]),
+                       "u": SplitStats(d["ru2"], d["du2"], d["x2"], d["u2"], d["eta2"]),
+                       "w": SplitStats(d["rw2"], d["dw2"], d["x2"], d["w2"], d["rho2"])},
+            "objective": {"data": 0.5 * d["data2"], "l1": d["l1"], "tv": d["tv"]}}
 
 
 def test_adaptation_raises_a_low_penalty_fast_and_stays_bounded():

@@ -1,12 +1,12 @@
-"""Float64 numpy twin of the ADMM reconstruction (paper Eq. 4), same splits and order as the
-device solver, sharing only the iteration policy (:mod:`cm2cl.solver.control`)."""
+"""Float64 numpy twin of the ADMM reconstruction (paper Eq. 4): the same splits as the device solver, each
+term with its own state (:mod:`.terms`), sharing only the iteration policy (:mod:`cm2cl.solver.control`)."""
 
 from __future__ import annotations
 
 import numpy as np
 
 from .forward import centered_psf, crop, crop_offsets, embed
-from .tv import tv_prox, tv_value
+from .terms import L1, TV, LeastSquares, sq
 
 
 def normalisation(psf, y, padded_shape):
@@ -18,7 +18,7 @@ def normalisation(psf, y, padded_shape):
 
 def admm(y, psf, params=None, padded_shape=None, dtype=np.float64, workers=None, callback=None,
          weights=None, x0=None, state=None, **kw):
-    """Float64 (or ``dtype``) numpy ADMM for paper Eq. 4 with the splits of DESIGN.md section 3.
+    """Float64 (or ``dtype``) numpy ADMM for paper Eq. 4: the x step, then each term's update (:mod:`.terms`).
 
     Same algorithm, order of updates, residuals, balancing and stopping as the device solver.
     ``workers`` is passed to scipy.fft (-1 = all cores). ``x0``: a warm start on the padded grid in the
@@ -28,7 +28,7 @@ def admm(y, psf, params=None, padded_shape=None, dtype=np.float64, workers=None,
     """
     import scipy.fft as sfft
 
-    from ..solver.control import Control, ProblemScale
+    from ..solver.control import Control, ProblemScale, SplitStats
     from ..solver.params import ADMMParams
     from ..solver.result import Reconstruction
 
@@ -55,54 +55,36 @@ def admm(y, psf, params=None, padded_shape=None, dtype=np.float64, workers=None,
     x = np.zeros((nz,) + P, dt)
     if x0 is not None:
         x = (np.maximum(np.asarray(x0, np.float64), 0) * (s_y / s_h)).astype(dt)
-    u, w = x.copy(), x.copy()
-    eta, rho = (np.zeros_like(x) for _ in range(2))
-    pd = np.zeros((3,) + x.shape, dt)
-    v = np.zeros(P, dt)
-    xi = np.zeros(P, dt)
     ctl = Control(p, ProblemScale.of(np.where(wts > 0, y * s_y, 0.0), float(np.sum((psf * s_h) ** 2)), nz),
                   callback)
-    l1, tv = ctl.l1, ctl.tv
     # each plane's l1 weight: ||h_i||^q / mean ||h_j||^q of the normalised stack (all ones for q = 0)
     hn = np.sqrt(np.sum((psf * s_h).reshape(nz, -1) ** 2, axis=1)) ** float(p.l1_plane_power)
-    lw = (hn / hn.mean())[:, None, None]
-    v = (mask * cty / (mask + ctl.mu_v)).astype(dt)  # the data split's minimiser at x = 0: the first x step sees the data
-    sq = lambda a: float(np.sum(np.asarray(a, np.float64) ** 2))  # noqa: E731
+    data = LeastSquares(cty, mask, ys, wts, M, dt)
+    data.start(ctl.mu["v"])
+    regs = (TV(x, p.tv_iters, p.tv_axial_weight, p.tv_isotropic), L1(x, (hn / hn.mean())[:, None, None]))
+    weight = {"u": ctl.tv, "w": ctl.l1}
     for it in range(1, p.max_iter + 1):
-        mu_v, mu_u, mu_w = ctl.mu_v, ctl.mu_u, ctl.mu_w
-        # x step: (mu_v H^T H + c I) x = H^T (mu_v v - xi) + (mu_u u - eta) + (mu_w w - rho)
-        c = mu_u + mu_w
-        B = np.conj(Hs) * rfft(mu_v * v - xi)[None] + rfft(mu_u * u - eta + mu_w * w - rho)
-        s = (Hs * B).sum(axis=0)
-        HX = s / (c + mu_v * hn2)
-        x_new = irfft((B - mu_v * np.conj(Hs) * HX[None]) / c).astype(dt)
+        mu = dict(ctl.mu)
+        # x step: (mu_v H^T H + c I) x = H^T (mu_v v - xi) + sum_t (mu_t z_t - dual_t), c = sum_t mu_t
+        c = sum(mu[t.split] for t in regs)
+        B = np.conj(Hs) * rfft(data.rhs(mu["v"]))[None] + rfft(sum(t.rhs(mu[t.split]) for t in regs))
+        HX = (Hs * B).sum(axis=0) / (c + mu["v"] * hn2)
+        x_new = irfft((B - mu["v"] * np.conj(Hs) * HX[None]) / c).astype(dt)
         hx = irfft(HX).astype(dt)
         dx2 = sq(x_new.astype(np.float64) - x)
         x = x_new
-        # w step: l1 + non-negativity
-        w_new = np.maximum(x + rho / mu_w - l1 * lw / mu_w, 0).astype(dt)
-        rho += mu_w * (x - w_new)
-        # v step: crop-aware data update
-        v_new = ((mask * cty + mu_v * hx + xi) / (mask + mu_v)).astype(dt)
-        xi += mu_v * (hx - v_new)
-        # u step: TV prox, warm-started dual
-        z = x + eta / mu_u
-        if tv > 0:
-            u_new, pd = tv_prox(z, tv / mu_u, p.tv_iters, pd, p.tv_axial_weight, p.tv_isotropic)
-        else:
-            u_new = z
-        u_new = u_new.astype(dt)
-        eta += mu_u * (x - u_new)
-        done = ctl.update(it, data2=float(np.sum(wts * (crop(hx.astype(np.float64), M) - ys) ** 2)), l1=float(np.sum(lw * np.abs(x))),
-                          tv=tv_value(x, p.tv_axial_weight, p.tv_isotropic), dx2=dx2, x2=sq(x),
-                          rv2=sq(hx - v_new), dv2=sq(v_new - v), ru2=sq(x - u_new), du2=sq(u_new - u),
-                          rw2=sq(x - w_new), dw2=sq(w_new - w), hx2=sq(hx), v2=sq(v_new), xi2=sq(xi),
-                          w2=sq(w_new), rho2=sq(rho), u2=sq(u_new), eta2=sq(eta))
-        v, u, w = v_new, u_new, w_new
-        if done:
+        stats, objective = data.update(hx, mu["v"])
+        splits = {"v": SplitStats(**stats)}
+        for t in regs:
+            st, obj = t.update(x, mu[t.split], weight[t.split])
+            splits[t.split] = SplitStats(**st)
+            objective.update(obj)
+        if ctl.update(it, dx2=dx2, x2=sq(x), splits=splits, objective=objective):
             break
+    tv, l1 = regs
     if state is not None:
-        state.update(x=x, u=u, w=w, v=v, rho=rho, eta=eta, xi=xi, px=pd[0], py=pd[1], pz=pd[2])
+        state.update(x=x, u=tv.u, w=l1.w, v=data.v, rho=l1.rho, eta=tv.eta, xi=data.xi, px=tv.p[0], py=tv.p[1],
+                     pz=tv.p[2])
     oy, ox = crop_offsets(M, P)
     vol = np.maximum(x, 0) * (s_h / s_y)
     return Reconstruction(volume_padded=vol, crop=(slice(oy, oy + M[0]), slice(ox, ox + M[1])),

@@ -69,18 +69,25 @@ class ProblemScale:
         tv = p.tv if p.tv is not None else p.tv_noise_ratio * self.noise_x
         return float(l1), float(tv)
 
-    def penalties(self, p: ADMMParams) -> tuple[float, float, float]:
-        """Initial (mu_v, mu_u, mu_w): the given ones, or mu_v = 1 (the curvature of the data term on
-        the normalised problem) and mu_u = mu_w = spectral_mean * mu_v: the x step then weighs the
-        data and the splits equally at a frequency of average power. With mu_u + mu_w near 1 (the old
-        default) the splits dominate at every frequency but the strongest, and the solve creeps. The
-        adaptation raises penalties that start low quickly and reliably; one that starts far too high
-        is corrected less well (measured in docs/accuracy_vs_time.md), so the start errs low."""
+    def penalty(self, p: ADMMParams, name: str, kind: str) -> float:
+        """Initial penalty of split ``name``: the given ``mu_<name>``, or for the data split mu_v = 1 (the
+        curvature of the data term on the normalised problem) and for a split z = x spectral_mean * mu_v:
+        the x step then weighs the data and the splits equally at a frequency of average power (near 1,
+        the splits dominate at every frequency but the strongest and the solve creeps). The adaptation
+        raises penalties that start low quickly and reliably, one far too high less well
+        (docs/accuracy_vs_time.md), so the start errs low."""
+        given = getattr(p, f"mu_{name}", None)
+        if given is not None:
+            return float(given)
         mu_v = p.mu_v if p.mu_v is not None else 1.0
-        ratio = float(min(max(self.spectral_mean, 1e-12), 1.0))
-        mu_u = p.mu_u if p.mu_u is not None else ratio * mu_v
-        mu_w = p.mu_w if p.mu_w is not None else ratio * mu_v
-        return float(mu_v), float(mu_u), float(mu_w)
+        if kind == "data":
+            return float(mu_v)
+        return float(min(max(self.spectral_mean, 1e-12), 1.0) * mu_v)
+
+
+    def penalties(self, p: ADMMParams) -> tuple[float, float, float]:
+        """Initial (mu_v, mu_u, mu_w) of the default splits (:meth:`penalty`)."""
+        return self.penalty(p, "v", "data"), self.penalty(p, "u", "identity"), self.penalty(p, "w", "identity")
 
 
 def _ratio(a: float, b: float) -> float:
@@ -90,15 +97,38 @@ def _ratio(a: float, b: float) -> float:
     return 1.0 if a == 0 else np.inf
 
 
-class Control:
-    """Penalties (mu_v, mu_u, mu_w), the log, and the decision to stop."""
+@dataclass(frozen=True)
+class SplitStats:
+    """One split's squared norms after an iteration (Boyd et al. 2011, sec. 3.3): ``r2`` = ||A x - z||^2
+    (primal), ``d2`` = ||z - z_old||^2 (the dual residual is mu times its root), ``ax2`` = ||A x||^2,
+    ``z2`` = ||z||^2 and ``dual2`` = ||dual||^2 (the scales of the relative residuals)."""
+    r2: float
+    d2: float
+    ax2: float
+    z2: float
+    dual2: float
 
-    def __init__(self, p: ADMMParams, scale: ProblemScale, callback=None, callback_every: int = 1):
+
+class Control:
+    """The splits' penalties (``mu``, by split name), the log, and the decision to stop.
+
+    ``splits``: the split names in log order, each with the name of its initial-penalty parameter's
+    kind: 'data' (the v = Hx split) or 'identity' (a split z = x); :meth:`update` takes each split's
+    :class:`SplitStats` and the objective's named parts, and ``weights`` weigh those parts (the
+    unweighted parts go to the log)."""
+
+    def __init__(self, p: ADMMParams, scale: ProblemScale, callback=None, callback_every: int = 1,
+                 splits=(("v", "data"), ("u", "identity"), ("w", "identity"))):
         self.p = p
         self.scale = scale
         self.l1, self.tv = scale.weights(p)
-        self.mu0 = scale.penalties(p)
-        self.mu_v, self.mu_u, self.mu_w = self.mu0
+        self.weights = {"data": 1.0, "l1": self.l1, "tv": self.tv}
+        self.mu0 = {name: scale.penalty(p, name, kind) for name, kind in splits}
+        self.mu = dict(self.mu0)
+        #: splits whose term is active: a split z = x without a weight (TV off) carries no term, z = x
+        #: + dual / mu = x exactly, and its penalty is neither adapted nor part of the stopping rule
+        self.active = {name: True for name, _ in splits}
+        self.active["u"] = self.tv > 0
         self.log: list[dict] = []
         self.callback, self.every = callback, max(1, int(callback_every))
         self.calm = 0
@@ -106,11 +136,10 @@ class Control:
         self.converged = False
         self.t0 = time.perf_counter()
 
-    @property
-    def tv_active(self) -> bool:
-        """The u = x split carries a term only when the TV weight is positive; otherwise u = x + eta/mu_u
-        = x exactly, and its penalty is neither adapted nor part of the stopping rule."""
-        return self.tv > 0
+    # the default splits' penalties by name
+    mu_v = property(lambda self: self.mu["v"])
+    mu_u = property(lambda self: self.mu["u"])
+    mu_w = property(lambda self: self.mu["w"])
 
     def _adapt(self, it: int, mu: float, mu0: float, r: float, s: float) -> float:
         p = self.p
@@ -130,54 +159,44 @@ class Control:
                 mu *= float(np.clip(step, 1.0 / p.adapt_max_step, p.adapt_max_step))
         return float(np.clip(mu, mu0 / p.mu_range, mu0 * p.mu_range))
 
-    def update(self, it, *, data2, l1, tv, dx2, x2, rv2, dv2, ru2, du2, rw2, dw2,
-               hx2, v2, xi2, w2, rho2, u2, eta2) -> bool:
-        """Record iteration `it` from squared norms (rv2 = ||Hx - v||^2, dv2 = ||v - v_old||^2, ...;
-        data2 = ||C Hx - y||^2; hx2, v2, xi2, w2, rho2, u2, eta2: squared norms of the new iterates and
-        duals), adapt the penalties, and return True when the run should stop.
+    def _relative(self, name: str, st: SplitStats, r: float, s: float, floor: float) -> tuple[float, float]:
+        """(primal, dual) relative residuals of a split: the primal one over max(||Ax||, ||z||), the dual
+        one over ||dual|| or, while the duals are still building up from 0, mu ||z||."""
+        if not self.active[name]:
+            return 0.0, 0.0
+        sq, mu = np.sqrt, self.mu[name]
+        return (_ratio(r, max(sq(st.ax2), sq(st.z2), floor)),
+                _ratio(s, max(sq(st.dual2), mu * max(sq(st.z2), floor))))
 
-        Dual residuals are mu ||z - z_old|| in the space of each split variable z (for v = Hx this
-        bounds mu_v ||H^T (v - v_old)|| since ||H|| = 1 after normalisation); relative residuals divide
-        the primal one by max(||A x||, ||z||) and the dual one by ||dual variable|| (Boyd et al. 2011,
-        section 3.3.1)."""
+    def update(self, it, *, dx2: float, x2: float, splits: dict, objective: dict) -> bool:
+        """Record iteration `it` from ||x - x_old||^2, ||x||^2, each split's :class:`SplitStats` and the
+        objective's parts (unweighted), adapt the penalties, and return True when the run should stop.
+        Dual residuals are mu ||z - z_old|| in the space of each split variable z (for v = Hx this bounds
+        mu_v ||H^T (v - v_old)|| since ||H|| = 1 after normalisation)."""
         p = self.p
         sq = np.sqrt
-        r_v, s_v = sq(rv2), self.mu_v * sq(dv2)
-        r_u, s_u = sq(ru2), self.mu_u * sq(du2)
-        r_w, s_w = sq(rw2), self.mu_w * sq(dw2)
-        nx = sq(x2)
+        res = {n: (sq(st.r2), self.mu[n] * sq(st.d2)) for n, st in splits.items()}
         # (for y = 0 the answer is x = 0 and every norm is 0: the smallest positive floor lets 0/floor = 0)
         floor = max(ABS_FRACTION * self.scale.y_norm, np.finfo(np.float64).tiny)
-        # dual residuals are in units of mu * (split variable); their scale is the dual variable or,
-        # while the duals are still building up from 0, mu times the split variable
-        rel = {
-            "v": (_ratio(r_v, max(sq(hx2), sq(v2), floor)),
-                  _ratio(s_v, max(sq(xi2), self.mu_v * max(sq(v2), floor)))),
-            "w": (_ratio(r_w, max(nx, sq(w2), floor)),
-                  _ratio(s_w, max(sq(rho2), self.mu_w * max(sq(w2), floor)))),
-            "u": ((_ratio(r_u, max(nx, sq(u2), floor)),
-                   _ratio(s_u, max(sq(eta2), self.mu_u * max(sq(u2), floor))))
-                  if self.tv_active else (0.0, 0.0)),
-        }
-        rel_change = _ratio(sq(dx2), max(nx, floor))
-        primal_rel = max(r for r, _ in rel.values())
-        dual_rel = max(s for _, s in rel.values())
-        data = 0.5 * data2
-        row = dict(objective=data + self.l1 * l1 + self.tv * tv, data=data, l1=l1, tv=tv, rel_change=rel_change,
-                   primal=np.sqrt(r_v**2 + r_u**2 + r_w**2), dual=np.sqrt(s_v**2 + s_u**2 + s_w**2),
-                   primal_rel=primal_rel, dual_rel=dual_rel,
-                   r_v=r_v, s_v=s_v, r_u=r_u, s_u=s_u, r_w=r_w, s_w=s_w,
-                   mu_v=self.mu_v, mu_u=self.mu_u, mu_w=self.mu_w, seconds=time.perf_counter() - self.t0)
+        rel = {n: self._relative(n, st, *res[n], floor) for n, st in splits.items()}
+        objective_value = 0.0
+        for name, value in objective.items():
+            objective_value += value if name == "data" else self.weights[name] * value
+        row = dict(objective=objective_value, **objective, rel_change=_ratio(sq(dx2), max(sq(x2), floor)),
+                   primal=np.sqrt(sum(r**2 for r, _ in res.values())),
+                   dual=np.sqrt(sum(s**2 for _, s in res.values())),
+                   primal_rel=max(r for r, _ in rel.values()), dual_rel=max(s for _, s in rel.values()))
+        for n, (r, s) in res.items():
+            row[f"r_{n}"], row[f"s_{n}"] = r, s
+        row.update({f"mu_{n}": mu for n, mu in self.mu.items()}, seconds=time.perf_counter() - self.t0)
         row = {"iter": int(it), **{k: float(v) for k, v in row.items()}}
         self.log.append(row)
         if self.callback is not None and (it % self.every == 0 or it == p.max_iter):
             self.callback(row)
-        mv, mu, mw = self.mu0
-        self.mu_v = self._adapt(it, self.mu_v, mv, r_v, s_v)
-        self.mu_w = self._adapt(it, self.mu_w, mw, r_w, s_w)
-        if self.tv_active:
-            self.mu_u = self._adapt(it, self.mu_u, mu, r_u, s_u)
-        ok = primal_rel <= p.tol and dual_rel <= p.tol and rel_change <= p.tol_change
+        for n, (r, s) in res.items():
+            if self.active[n]:
+                self.mu[n] = self._adapt(it, self.mu[n], self.mu0[n], r, s)
+        ok = row["primal_rel"] <= p.tol and row["dual_rel"] <= p.tol and row["rel_change"] <= p.tol_change
         self.calm = self.calm + 1 if ok else 0
         if self.calm >= p.patience:
             self.stop, self.converged = "converged", True
@@ -188,5 +207,5 @@ class Control:
         """What the result records about the control: why it stopped, and what the defaults came from."""
         return {"stop": self.stop, "converged": self.converged, "l1": self.l1, "tv": self.tv,
                 "noise_sigma": self.scale.noise_sigma, "noise_x": self.scale.noise_x, "spectral_mean": self.scale.spectral_mean,
-                "initial_penalties": {"mu_v": self.mu0[0], "mu_u": self.mu0[1], "mu_w": self.mu0[2]},
+                "initial_penalties": {f"mu_{n}": mu for n, mu in self.mu0.items()},
                 "penalty_policy": self.p.penalty, "tol": self.p.tol, "tol_change": self.p.tol_change}

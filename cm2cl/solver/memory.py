@@ -29,9 +29,10 @@ def host_available_bytes() -> int:
 #: keep that slab small next to the volumes, and each slab's kernels long enough to hide their launch
 LEAN_SLAB_PLANES = 2
 
-#: real volumes on the padded grid the solver keeps (x, x_old/scratch, s, u, px, py, pz: parts.REAL;
-#: w, rho and eta are derived, cm2cl.solver.admm)
+#: real volumes on the padded grid and reduction slots of the default terms' fused set (x, x_old/scratch,
+#: s, u, px, py, pz; w, rho and eta derived: cm2cl.solver.terms.fused); other term sets give theirs
 REAL_VOLUMES = 7
+DEFAULT_SLOTS = 18
 
 
 def fft_scratch_per_plane(rt, padded_shape, dtype, backend) -> int:
@@ -41,29 +42,32 @@ def fft_scratch_per_plane(rt, padded_shape, dtype, backend) -> int:
     return get_plan(rt, padded_shape, 1, dtype, backend).scratch_bytes
 
 
-def memory_estimate(nz, padded_shape, dtype, backend, scratch_per_plane=0, lean_slab=None) -> dict:
+def memory_estimate(nz, padded_shape, dtype, backend, scratch_per_plane=0, lean_slab=None,
+                    real_volumes=REAL_VOLUMES, nslots=DEFAULT_SLOTS) -> dict:
     """Bytes the solver allocates on one device for ``nz`` resident planes: ``per_plane`` for each depth
     plane, ``fixed`` for the plane buffers; ``scratch_per_plane`` is the FFT library's scratch for one
     plane (:func:`fft_scratch_per_plane`; the one-plane transforms need it once more). ``lean_slab``:
     the lean layout with slabs of that many planes (cm2cl.solver.parts.LEAN_SCRATCH), whose x spectra
-    are one slab, a fixed cost, and whose planes hold the 7 real volumes and the PSF spectra only."""
+    are one slab, a fixed cost, and whose planes hold the real volumes and the PSF spectra only.
+    ``real_volumes`` and ``nslots``: the real volumes and the reduction slots of the solve's terms
+    (cm2cl.solver.terms; the defaults: the default set's)."""
     py, px = padded_shape
     item = np.dtype(dtype).itemsize
     spec_plane = int(np.prod(spectrum_shape((py, px), backend))) * 2 * item
     real_plane = py * px * item
-    # + x spectra + PSF spectra; the reductions' partial sums: 18 per work-item of the row kernels, each
-    # of >= 576 elements (cm2cl/solver/admm.py, ROW_ELEMENTS) but for the rounding to whole blocks of
-    # x and of rows (at most one more per column block and per row block) and for short columns
-    partials = real_plane // 32 + 18 * (py + px + 1) * item
+    # + x spectra + PSF spectra; the reductions' partial sums: nslots per work-item of the row kernels,
+    # each of >= 32 nslots elements (cm2cl/solver/launch.py) but for the rounding to whole blocks of x
+    # and of rows (at most one more per column block and per row block) and for short columns
+    partials = real_plane // 32 + int(nslots) * (py + px + 1) * item
     spectra = 1 if lean_slab else 2
-    per_plane = REAL_VOLUMES * real_plane + spectra * spec_plane + partials + int(scratch_per_plane)
+    per_plane = int(real_volumes) * real_plane + spectra * spec_plane + partials + int(scratch_per_plane)
     # planes: v, xi, hx, cty, cw, r and two halos (real); R, S, comp (complex); hn2 (real, spectrum grid)
     fixed = 8 * real_plane + 3 * spec_plane + spec_plane // 2 + 1024 + int(scratch_per_plane)
     if lean_slab:   # one slab of x spectra, and the plane r_next (real)
         fixed += int(lean_slab) * spec_plane + real_plane
     return {"per_plane": per_plane, "fixed": fixed, "total": nz * per_plane + fixed,
             "real_volume": nz * real_plane, "psf_spectra": nz * spec_plane,
-            "volumes_per_plane": REAL_VOLUMES * real_plane + spectra * spec_plane}
+            "volumes_per_plane": int(real_volumes) * real_plane + spectra * spec_plane}
 
 
 def device_budget(rt, max_memory=None) -> int:
@@ -152,7 +156,8 @@ class PartPlan:
 
 
 def plan_layout(nz, padded_shape, dtype, backend, runtimes, *, max_memory=None, stream="auto",
-                max_slab_planes=None, scratch_per_plane=0, overlap="auto", lean="auto") -> list[PartPlan]:
+                max_slab_planes=None, scratch_per_plane=0, overlap="auto", lean="auto",
+                real_volumes=REAL_VOLUMES, nslots=DEFAULT_SLOTS) -> list[PartPlan]:
     """Spread ``nz`` planes over ``runtimes`` (contiguous runs, in proportion to each device's budget):
     resident where every run fits its device; else resident and lean (``lean`` 'auto' or True: one slab
     of LEAN_SLAB_PLANES planes of x spectra instead of a volume of them, for one more forward FFT per
@@ -173,7 +178,8 @@ def plan_layout(nz, padded_shape, dtype, backend, runtimes, *, max_memory=None, 
     if lean is True and stream is True:
         raise InputError("lean and stream: the lean layout keeps every plane on the device, streaming keeps "
                          "them in host memory; ask for one of them (--lean always or --stream always)")
-    est = memory_estimate(1, padded_shape, dtype, backend, scratch_per_plane)
+    terms = {"real_volumes": real_volumes, "nslots": nslots}
+    est = memory_estimate(1, padded_shape, dtype, backend, scratch_per_plane, **terms)
     per, fixed, vols = est["per_plane"], est["fixed"], est["volumes_per_plane"]
     budgets = [device_budget(rt, max_memory) for rt in runtimes]
     keep = [(rt, r, bud) for rt, r, bud in zip(runtimes, _proportional_runs(nz, budgets), budgets) if r[1] > r[0]]
@@ -183,7 +189,7 @@ def plan_layout(nz, padded_shape, dtype, backend, runtimes, *, max_memory=None, 
                 for rt, (a, b) in zip(runtimes, runs)]
     if stream is not True and lean is not False:
         slabs = [int(min(LEAN_SLAB_PLANES, b - a, max_slab_planes or LEAN_SLAB_PLANES)) for a, b in runs]
-        need = [_lean_bytes(b - a, slab, padded_shape, dtype, backend, scratch_per_plane)
+        need = [_lean_bytes(b - a, slab, padded_shape, dtype, backend, scratch_per_plane, terms)
                 for (a, b), slab in zip(runs, slabs)]
         if all(n <= bud for n, bud in zip(need, budgets)):
             return [PartPlan(rt, a, b, False, slab, n, 0, lean=True)
@@ -191,7 +197,7 @@ def plan_layout(nz, padded_shape, dtype, backend, runtimes, *, max_memory=None, 
     if stream is False:   # the need of the leanest resident layout allowed
         need = max(fixed + (b - a) * per if lean is False else
                    _lean_bytes(b - a, int(min(LEAN_SLAB_PLANES, b - a, max_slab_planes or LEAN_SLAB_PLANES)),
-                               padded_shape, dtype, backend, scratch_per_plane) for a, b in runs)
+                               padded_shape, dtype, backend, scratch_per_plane, terms) for a, b in runs)
         raise DeviceError(
             f"problem too large to keep on the device{'s' if len(runtimes) > 1 else ''}: {nz} planes on a "
             f"{padded_shape[0]} x {padded_shape[1]} padded grid need {need / 2**30:.2f} GiB per device, "
@@ -215,8 +221,8 @@ def plan_layout(nz, padded_shape, dtype, backend, runtimes, *, max_memory=None, 
     return out
 
 
-def _lean_bytes(planes, slab, padded_shape, dtype, backend, scratch_per_plane) -> int:
-    return memory_estimate(planes, padded_shape, dtype, backend, scratch_per_plane, lean_slab=slab)["total"]
+def _lean_bytes(planes, slab, padded_shape, dtype, backend, scratch_per_plane, terms) -> int:
+    return memory_estimate(planes, padded_shape, dtype, backend, scratch_per_plane, lean_slab=slab, **terms)["total"]
 
 
 def _proportional_runs(nz, budgets):

@@ -53,7 +53,7 @@ class Part:
     device buffers for each step."""
 
     def __init__(self, rt, z0, z1, padded_shape, spec_plane, dtype, cdtype, *, slab_planes=None,
-                 streamed=False, overlap=False, pinned=None, lean=False):
+                 streamed=False, overlap=False, pinned=None, lean=False, real=REAL):
         self.rt, self.z0, self.z1 = rt, int(z0), int(z1)
         self.P, self.spec_plane = tuple(padded_shape), tuple(spec_plane)
         self.dtype, self.cdtype = np.dtype(dtype), np.dtype(cdtype)
@@ -66,7 +66,7 @@ class Part:
             raise ValueError(f"spectrum plane {self.spec_plane} holds fewer reals than a padded plane {self.P}")
         self.bounds = slab_bounds(self.z1 - self.z0, plane_bytes, rt.caps.max_alloc, slab_planes)
         self.max_planes = max(b - a for a, b in self.bounds)
-        shapes = {n: (self.P, self.dtype) for n in REAL} | {n: (self.spec_plane, self.cdtype) for n in COMPLEX}
+        shapes = {n: (self.P, self.dtype) for n in real} | {n: (self.spec_plane, self.cdtype) for n in COMPLEX}
         self.overlap = self.streamed and bool(overlap) and len(self.bounds) > 1
         self.copy_queue = CopyQueue(rt) if self.overlap else None
         self.busy = [None, None]   # per slab-buffer set: the event of the last work that used it
@@ -92,6 +92,32 @@ class Part:
         if self.lean:   # the first plane of the TV residual of the slab after the one being visited
             self.planes["r_next"] = fill(rt, plane(self.P, self.dtype), 0)
         self.moved_bytes = 0   # host <-> device traffic of the streamed slabs
+        #: the solver's kernels on this part (cm2cl.solver.launch.Kernels) and the row kernels' layout
+        #: (cm2cl.solver.launch.RowLayout), set by the solver
+        self.kernels = None
+        self.row = None
+
+    # ---- the kernels and their layout (views for tests and tools) ---------------------------------
+    @property
+    def k(self) -> dict:
+        """The built kernels by name (a test may replace one, e.g. to count its launches)."""
+        return self.kernels.k
+
+    @property
+    def vw(self) -> int:
+        return self.row.vw
+
+    @property
+    def rows(self) -> int:
+        return self.row.rows
+
+    @property
+    def acc_planes(self):
+        return self.row.acc_planes
+
+    @acc_planes.setter
+    def acc_planes(self, value):
+        self.row.acc_planes = value
 
     def _host_array(self, shape, dtype, pinned: bool) -> np.ndarray:
         """A zeroed host array; ``pinned``: mapped from a buffer the driver allocates in host memory

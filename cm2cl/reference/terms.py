@@ -1,0 +1,82 @@
+"""Float64 numpy twins of the objective's terms, each a split of the ADMM with its own state: the
+least-squares data term on v = Hx, l1 + non-negativity on w = x, TV on u = x. Each reports the same
+squared norms as its device kernels (the penalty policy and the stopping rule read them)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .forward import crop
+from .tv import tv_prox, tv_value
+
+
+def sq(a) -> float:
+    return float(np.sum(np.asarray(a, np.float64) ** 2))
+
+
+class LeastSquares:
+    """1/2 ||C H x - y||^2_W on v = Hx: v' = (C^T W y + mu Hx + xi) / (C^T W C + mu), xi += mu (Hx - v')."""
+
+    split, kind = "v", "data"
+
+    def __init__(self, cty, mask, ys, wts, M, dt):
+        self.cty, self.mask, self.ys, self.wts, self.M, self.dt = cty, mask, ys, wts, M, dt
+        self.xi = np.zeros_like(cty)
+
+    def start(self, mu):
+        self.v = (self.mask * self.cty / (self.mask + mu)).astype(self.dt)   # v's minimiser at x = 0
+
+    def rhs(self, mu):
+        return mu * self.v - self.xi
+
+    def update(self, hx, mu):
+        v_new = ((self.mask * self.cty + mu * hx + self.xi) / (self.mask + mu)).astype(self.dt)
+        self.xi += mu * (hx - v_new)
+        stats = dict(r2=sq(hx - v_new), d2=sq(v_new - self.v), ax2=sq(hx), z2=sq(v_new), dual2=sq(self.xi))
+        self.v = v_new
+        return stats, {"data": 0.5 * float(np.sum(self.wts * (crop(hx.astype(np.float64), self.M) - self.ys) ** 2))}
+
+
+class L1:
+    """l1 sum_z c_z |x_z| + i(x >= 0) on w = x: w' = max(x + rho/mu - l1 c/mu, 0), rho += mu (x - w')."""
+
+    split, kind = "w", "identity"
+
+    def __init__(self, x, plane_weights):
+        self.w, self.rho, self.lw = x.copy(), np.zeros_like(x), plane_weights
+
+    def rhs(self, mu):
+        return mu * self.w - self.rho
+
+    def update(self, x, mu, weight):
+        w_new = np.maximum(x + self.rho / mu - weight * self.lw / mu, 0).astype(x.dtype)
+        self.rho += mu * (x - w_new)
+        stats = dict(r2=sq(x - w_new), d2=sq(w_new - self.w), ax2=sq(x), z2=sq(w_new), dual2=sq(self.rho))
+        self.w = w_new
+        return stats, {"l1": float(np.sum(self.lw * np.abs(x)))}
+
+
+class TV:
+    """tv TV(x) on u = x: u' = prox_{tv/mu TV}(x + eta/mu) by warm-started dual iterations, eta += mu (x - u')."""
+
+    split, kind = "u", "identity"
+
+    def __init__(self, x, iters, axial_weight, isotropic):
+        self.u, self.eta = x.copy(), np.zeros_like(x)
+        self.p = np.zeros((3,) + x.shape, x.dtype)
+        self.iters, self.aw, self.iso = iters, axial_weight, isotropic
+
+    def rhs(self, mu):
+        return mu * self.u - self.eta
+
+    def update(self, x, mu, weight):
+        z = x + self.eta / mu
+        if weight > 0:
+            u_new, self.p = tv_prox(z, weight / mu, self.iters, self.p, self.aw, self.iso)
+        else:
+            u_new = z
+        u_new = u_new.astype(x.dtype)
+        self.eta += mu * (x - u_new)
+        stats = dict(r2=sq(x - u_new), d2=sq(u_new - self.u), ax2=sq(x), z2=sq(u_new), dual2=sq(self.eta))
+        self.u = u_new
+        return stats, {"tv": tv_value(x, self.aw, self.iso)}

@@ -1,0 +1,84 @@
+"""The objective's terms (:mod:`.base`: the protocol) and the two ways the solver runs a set of them:
+:class:`GenericSet`, any terms, each updated by its own kernels; :class:`DefaultSet`
+(:mod:`.fused`), the default terms on the lean state with fused kernels, the fast path."""
+
+from __future__ import annotations
+
+from .base import Term
+from .data import LeastSquares
+from .fused import DefaultSet
+from .l1 import L1, plane_weights
+from .tv import TV
+
+
+class GenericSet:
+    """A data term and regularisers on identity splits, each with its own state and kernels; the
+    solver's loop runs the x step on their rhs and then each term's update."""
+
+    fused = False
+    kernels = (("terms.cl", "x_change"), ("terms.cl", "rhs_add"), ("terms.cl", "l1_update"),
+               ("terms.cl", "tv_argument"), ("terms.cl", "tv_update"))
+
+    def __init__(self, data: Term, regularisers):
+        self.data, self.regs = data, tuple(regularisers)
+        self.terms = (data,) + self.regs
+        names = [t.split for t in self.terms]
+        if len(set(names)) != len(names):
+            raise ValueError(f"terms: split names must differ, got {names}")
+        self.volumes = tuple(dict.fromkeys(("x", "g") + sum((t.volumes for t in self.terms), ())))
+        self.sums = (("x_change", ("dx2", "x2")),) + tuple((t.split, t.sums) for t in self.terms)
+        self.splits = tuple((t.split, t.kind) for t in self.terms)
+        self.start_volumes = ("x",) + tuple(t.volumes[0] for t in self.regs)
+
+    def setup(self, s) -> None:
+        for t in self.terms:
+            t.setup(s)
+
+    def start(self, s, ctl) -> None:
+        for t in self.terms:
+            t.start(s, ctl)
+
+    def reset(self) -> None:
+        pass
+
+    def c(self, mu: dict) -> float:
+        c = 0.0
+        for t in self.regs:
+            c += mu[t.split]
+        return c
+
+    def rhs_ready(self, mu: dict) -> bool:
+        return False
+
+    def rhs_reads(self, ready: bool) -> tuple:
+        return tuple(dict.fromkeys(sum((t.rhs_reads for t in self.regs), ())))
+
+    def rhs(self, s, i, part, j, n, a, mu: dict) -> None:
+        for k, t in enumerate(self.regs):
+            t.add_rhs(s, part, j, n, a, mu[t.split], k == 0)
+
+    def update(self, s, ctl) -> None:
+        ny, nx = s.P
+        for i, part, j0, j1, n, a in s.walk.runs(("x", "g")):
+            s.reduce_rows(part, "x_change", "x_change", x=a["x"], x_old=a["g"], planes=n, ny=ny, nx=nx)
+        for t in self.terms:
+            t.update(s, ctl)
+
+    def report(self, v: dict) -> dict:
+        objective = {}
+        for t in self.terms:
+            objective.update(t.objective(v))
+        return {"dx2": v["dx2"], "x2": v["x2"], "splits": {t.split: t.stats(v) for t in self.terms},
+                "objective": objective}
+
+    def derived(self, s, name: str):
+        return None
+
+
+def default_terms(fused: bool = True):
+    """The default objective {least squares, TV, l1 + non-negativity}: the fused set, or the same terms
+    as a generic set."""
+    return DefaultSet() if fused else GenericSet(LeastSquares(), (TV(), L1()))
+
+
+__all__ = ["Term", "LeastSquares", "L1", "TV", "GenericSet", "DefaultSet", "default_terms", "plane_weights"]

@@ -1,0 +1,54 @@
+"""The protocol of the objective's terms. A term owns a split of the ADMM (its name names the
+split's penalty ``mu_<split>`` and its log columns): its volumes (for the parts and the memory model),
+its named sums, its share of the x step's right-hand side and of its diagonal, its prox and dual
+update, and its residuals for the penalty policy and the stopping rule.
+
+The x step solves (mu_v H^T H + c I) x = H^T (mu_v v - xi) + sum_t (mu_t z_t - dual_t) with
+c = sum_t mu_t over the identity splits z_t = x: any term of that form plugs in without changing
+the x step (cm2cl/solver/xstep.py)."""
+
+from __future__ import annotations
+
+from ..control import SplitStats
+
+
+class Term:
+    """One split of the objective. ``kind``: 'data' (v = Hx, one per solve) or 'identity' (z = x)."""
+
+    split: str = ""
+    kind: str = "identity"
+    #: real volumes on the padded grid it keeps (its split variable, its dual, its own scratch)
+    volumes: tuple = ()
+    #: names of its sums, in the order its reducing kernel writes them
+    sums: tuple = ()
+    #: the volumes its share of the x step's right-hand side reads
+    rhs_reads: tuple = ()
+
+    def setup(self, s) -> None:
+        """Per-part data it needs on the devices (``s``: the solver), once per solver."""
+
+    def start(self, s, ctl) -> None:
+        """Its state at the start of a solve (the solver zeroed every volume, x0 set x and z)."""
+
+    def active(self, ctl) -> bool:
+        return True
+
+    def add_rhs(self, s, part, j: int, n: int, a: dict, mu: float, first: bool) -> None:
+        """t (+)= mu z - dual on slab j of ``part`` (``first``: t = ...)."""
+        raise NotImplementedError
+
+    def update(self, s, ctl) -> None:
+        """Its prox and dual update after the x step (x: the new iterate), adding its sums."""
+        raise NotImplementedError
+
+    def stats(self, v: dict) -> SplitStats:
+        """Its split's squared norms from the solve's named sums ``v``."""
+        raise NotImplementedError
+
+    def objective(self, v: dict) -> dict:
+        """Its parts of the objective (unweighted), by name."""
+        return {}
+
+    def derived(self, s, name: str):
+        """A volume of its state that it does not store (None: not one of its own)."""
+        return None

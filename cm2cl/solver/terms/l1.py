@@ -1,0 +1,61 @@
+"""The l1 term with non-negativity, l1 sum_z c_z ||x_z||_1 + i(x >= 0), on the split w = x (c_z: each
+plane's weight, :func:`plane_weights`), with w and its dual rho stored."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..control import SplitStats
+from .base import Term
+
+
+def plane_weights(psf_n, power: float) -> np.ndarray:
+    """Each plane's weight in the l1 term: ||h_i||^power / mean_j ||h_j||^power (ones for power 0)."""
+    norms = np.sqrt(np.sum(np.asarray(psf_n, np.float64).reshape(psf_n.shape[0], -1) ** 2, axis=1))
+    c = norms ** float(power)
+    return c / np.mean(c)
+
+
+class PlaneWeights:
+    """Each part's plane weights on its device: per slab, and for all its planes at once."""
+
+    def __init__(self, parts, weights, dtype):
+        self.slab, self.whole = [], []
+        for part in parts:
+            per = [part.rt.zeros(b - a, dtype) for a, b in part.bounds]
+            for (a, b), arr in zip(part.bounds, per):
+                arr.set(weights[part.z0 + a:part.z0 + b].astype(dtype))
+            allw = part.rt.zeros(part.z1 - part.z0, dtype) if len(per) > 1 else per[0]
+            allw.set(weights[part.z0:part.z1].astype(dtype))
+            self.slab.append(per)
+            self.whole.append(allw)
+
+    def of(self, i: int, j0: int, j1: int):
+        """The weights of slabs j0..j1 of part i (one slab, or all of them)."""
+        return self.slab[i][j0] if j0 == j1 else self.whole[i]
+
+
+class L1(Term):
+    split = "w"
+    volumes = ("w", "rho")
+    sums = ("l1", "rw2", "sw2", "w2", "rho2")
+    rhs_reads = ("w", "rho")
+
+    def setup(self, s) -> None:
+        self.weights = PlaneWeights(s.parts, s.l1_plane_weights, s.dtype)
+
+    def add_rhs(self, s, part, j, n, a, mu, first) -> None:
+        ny, nx = s.P
+        s.row_grid(part, "rhs_add", t=a["g"], z=a["w"], dual=a["rho"], mu=mu, add=not first, planes=n, ny=ny, nx=nx)
+
+    def update(self, s, ctl) -> None:
+        ny, nx = s.P
+        for i, part, j0, j1, n, a in s.walk.runs(("x", "w", "rho"), ("w", "rho")):
+            s.reduce_rows(part, "l1_update", "w", x=a["x"], w=a["w"], rho=a["rho"], l1=ctl.l1,
+                          l1w=self.weights.of(i, j0, j1), mu=ctl.mu["w"], planes=n, ny=ny, nx=nx)
+
+    def stats(self, v: dict) -> SplitStats:
+        return SplitStats(v["rw2"], v["sw2"], v["x2"], v["w2"], v["rho2"])
+
+    def objective(self, v: dict) -> dict:
+        return {"l1": v["l1"]}

@@ -1,0 +1,137 @@
+/* Kernels of the generic terms (cm2cl/solver/terms): each regulariser of a split z = x keeps its
+ * split variable and its unscaled dual as volumes of their own, so that a new term needs no change to
+ * another's kernels. (The default set's fused kernels, splits.cl and tv.cl, derive them instead.)
+ * All are row kernels (common.cl); the reducing ones add their sums into the partials at slot0. */
+
+/* Reduces ||x - x_old||^2 and ||x||^2 over one slab (the change of the iterate, the stopping rule). */
+__kernel void x_change(__global const real_t *x, __global const real_t *x_old,
+                       const int planes, const int ny, const int nx, const int rows,
+                       __global real_t *partials, const int pstride, const int slot0) {
+    int xb0, xb1, y0, y1;
+    size_t g;
+    if (!row_item(nx, ny, rows, &xb0, &xb1, &y0, &y1, &g)) return;
+    realv a0 = 0, a1 = 0;
+    for (int y = y0; y < y1; y++)
+        for (int z = 0; z < planes; z++)
+            for (int xb = xb0; xb < xb1; xb++) {
+                const int x0 = xb * VW, cnt = nx - x0;
+                const size_t i = slab_index(z, y, x0, ny, nx);
+                const realv xi = load_row(x, i, cnt), dx = xi - load_row(x_old, i, cnt);
+                a0 += lanes_below(dx * dx, cnt);
+                a1 += lanes_below(xi * xi, cnt);
+            }
+    const real_t sums[2] = {lanes_sum(a0), lanes_sum(a1)};
+    add_partials(partials, pstride, g, slot0, sums, 2);
+}
+
+/* t = (add ? t : 0) + mu z - dual over one slab: one identity split's part of the x step's
+ * right-hand side. */
+__kernel void rhs_add(__global real_t *t, __global const real_t *z, __global const real_t *dual,
+                      const real_t mu, const int add, const int planes, const int ny, const int nx,
+                      const int rows) {
+    int xb0, xb1, y0, y1;
+    size_t item;
+    if (!row_item(nx, ny, rows, &xb0, &xb1, &y0, &y1, &item)) return;
+    for (int y = y0; y < y1; y++)
+        for (int zz = 0; zz < planes; zz++)
+            for (int xb = xb0; xb < xb1; xb++) {
+                const int x0 = xb * VW, cnt = nx - x0;
+                const size_t i = slab_index(zz, y, x0, ny, nx);
+                const realv r = mu * load_row(z, i, cnt) - load_row(dual, i, cnt);
+                store_row(add ? load_row(t, i, cnt) + r : r, t, i, cnt);
+            }
+}
+
+/* The l1 + non-negativity split w = x with per-voxel weights c = l1 l1w[z] (l1w: each plane's weight):
+ *     w' = max(x + rho/mu - c/mu, 0),   rho' = rho + mu (x - w')
+ * Reduces sum l1w |x|, ||x - w'||^2, ||w' - w||^2, ||w'||^2, ||rho'||^2. */
+__kernel void l1_update(__global const real_t *x, __global real_t *w, __global real_t *rho,
+                        const real_t l1, __global const real_t *l1w, const real_t mu,
+                        const int planes, const int ny, const int nx, const int rows,
+                        __global real_t *partials, const int pstride, const int slot0) {
+    int xb0, xb1, y0, y1;
+    size_t g;
+    if (!row_item(nx, ny, rows, &xb0, &xb1, &y0, &y1, &g)) return;
+    realv a0 = 0, a1 = 0, a2 = 0, a3 = 0, a4 = 0;
+    for (int y = y0; y < y1; y++)
+        for (int z = 0; z < planes; z++) {
+            const real_t lw = l1w[z], c = l1 * lw;
+            for (int xb = xb0; xb < xb1; xb++) {
+                const int x0 = xb * VW, cnt = nx - x0;
+                const size_t i = slab_index(z, y, x0, ny, nx);
+                const realv xi = load_row(x, i, cnt), wo = load_row(w, i, cnt), ro = load_row(rho, i, cnt);
+                const realv wn = fmax(xi + ro / mu - c / mu, (real_t)0);
+                const realv rn = ro + mu * (xi - wn);
+                const realv pw = xi - wn, dw = wn - wo;
+                store_row(wn, w, i, cnt);
+                store_row(rn, rho, i, cnt);
+                a0 += lanes_below(lw * fabs(xi), cnt);
+                a1 += lanes_below(pw * pw, cnt);
+                a2 += lanes_below(dw * dw, cnt);
+                a3 += lanes_below(wn * wn, cnt);
+                a4 += lanes_below(rn * rn, cnt);
+            }
+        }
+    const real_t sums[5] = {lanes_sum(a0), lanes_sum(a1), lanes_sum(a2), lanes_sum(a3), lanes_sum(a4)};
+    add_partials(partials, pstride, g, slot0, sums, 5);
+}
+
+/* The TV prox's argument z = x + eta / mu over one slab. */
+__kernel void tv_argument(__global real_t *z, __global const real_t *x, __global const real_t *eta,
+                          const real_t mu, const int planes, const int ny, const int nx, const int rows) {
+    int xb0, xb1, y0, y1;
+    size_t item;
+    if (!row_item(nx, ny, rows, &xb0, &xb1, &y0, &y1, &item)) return;
+    for (int y = y0; y < y1; y++)
+        for (int zz = 0; zz < planes; zz++)
+            for (int xb = xb0; xb < xb1; xb++) {
+                const int x0 = xb * VW, cnt = nx - x0;
+                const size_t i = slab_index(zz, y, x0, ny, nx);
+                store_row(load_row(x, i, cnt) + load_row(eta, i, cnt) / mu, z, i, cnt);
+            }
+}
+
+/* The TV split u = x after the dual iterations (tv.cl) on p:
+ *     u' = z - tau div p (u' = z with tau = 0: TV off),   eta' = eta + mu (x - u')
+ * Reduces TV(x) (forward differences, Neumann; x_next: the next slab of x when has_next),
+ * ||x - u'||^2, ||u' - u||^2, ||u'||^2, ||eta'||^2. */
+__kernel void tv_update(__global real_t *u, __global real_t *eta, __global const real_t *x,
+                        __global const real_t *x_next, const int has_next, __global const real_t *z,
+                        __global const real_t *px, __global const real_t *py, __global const real_t *pz,
+                        __global const real_t *pz_prev, const int has_prev, const int prev_planes,
+                        const real_t tau, const real_t mu, const real_t aw, const int iso,
+                        const int planes, const int ny, const int nx, const int rows,
+                        __global real_t *partials, const int pstride, const int slot0) {
+    int xb0, xb1, y0, y1;
+    size_t g;
+    if (!row_item(nx, ny, rows, &xb0, &xb1, &y0, &y1, &g)) return;
+    const size_t plane = (size_t)ny * nx;
+    realv a0 = 0, a1 = 0, a2 = 0, a3 = 0, a4 = 0;
+    for (int y = y0; y < y1; y++)
+        for (int zz = 0; zz < planes; zz++)
+            for (int xb = xb0; xb < xb1; xb++) {
+                const int x0 = xb * VW, cnt = nx - x0;
+                const size_t i = slab_index(zz, y, x0, ny, nx);
+                const realv xv = load_row(x, i, cnt);
+                realv un = load_row(z, i, cnt);
+                if (tau > 0)
+                    un -= tau * div_step(px, py, pz, pz_prev, has_prev, prev_planes, i, plane, x0, cnt, y, zz,
+                                         planes, has_next, ny, nx, aw);
+                const realv en = load_row(eta, i, cnt) + mu * (xv - un);
+                const realv pu = xv - un, du = un - load_row(u, i, cnt);
+                store_row(un, u, i, cnt);
+                store_row(en, eta, i, cnt);
+                const realv xn = next_plane(x, x_next, has_next, i, plane, zz, planes, cnt, xv);
+                realv gx, gy;
+                grad_xy(x, i, xv, cnt, y, ny, nx, &gx, &gy);
+                const realv gz = aw * (xn - xv);
+                const realv tv = iso ? sqrt(gx * gx + gy * gy + gz * gz) : fabs(gx) + fabs(gy) + fabs(gz);
+                a0 += lanes_below(tv, cnt);
+                a1 += lanes_below(pu * pu, cnt);
+                a2 += lanes_below(du * du, cnt);
+                a3 += lanes_below(un * un, cnt);
+                a4 += lanes_below(en * en, cnt);
+            }
+    const real_t sums[5] = {lanes_sum(a0), lanes_sum(a1), lanes_sum(a2), lanes_sum(a3), lanes_sum(a4)};
+    add_partials(partials, pstride, g, slot0, sums, 5);
+}
