@@ -31,9 +31,8 @@ from ..errors import InputError
 
 __all__ = ["RADICES", "factor", "ClPlan"]
 
-#: radices in the order the passes use them; 8 before 4 before 2, 9 before 3 (fewer passes). Radix 9
-#: against two radix-3 passes, 648 x 864 x 16 float32 on PoCL, forward + inverse, three alternating
-#: runs: 31.4 / 34.0 / 35.1 ms against 32.4 / 35.6 / 36.3 ms; radix 16 did not pay there.
+#: radices in the order the passes use them; 8 before 4 before 2, 9 before 3: fewer passes (radix 9 and 16
+#: measured in docs/benchmarks.md, "Measurements behind code choices")
 RADICES = (8, 4, 2, 9, 3, 5, 7, 11, 13)
 MAX_PASSES = 12
 
@@ -77,9 +76,8 @@ def _line_defines(n: int) -> dict:
 
 def _lines_per_item(caps, dtype) -> int:
     """Lines a work-item transforms together on a CPU (SIMD across lines): the largest of 1, 2,
-    4, 8 within the device's native vector width of the real type.  Measured on PoCL (AVX-512,
-    648 x 864 x 16, r2c + c2r per plane): float32 8.2 ms with 1, 7.5 with 2, 4.9 with 4, 3.3 with 8;
-    float64 8.3 with 2, 5.6 with 4, 4.9 with 8."""
+    4, 8 within the device's native vector width of the real type: more lines per work-item were faster
+    up to 8 (docs/benchmarks.md, "Measurements behind code choices")."""
     width = caps.vector_width_float if np.dtype(dtype) == np.float32 else caps.vector_width_double
     v = 1
     while v * 2 <= min(_max_lines(caps, dtype), width):
@@ -145,11 +143,10 @@ class ClPlan:
         self._scratch = None
 
         # Work-group shapes: V lines per work-item x C work-items per group x T work-items per line.
-        # CPUs (PoCL, measured on 648 x 864 x 16 float32, r2c + c2r per plane, shared 2 cores):
-        # V from the SIMD width (see _lines_per_item), C = T = 1 (V = 8: 1.75 ms with C = 1 or 2,
-        # 2.0 with 4, 3.1 with 8; T = 2: 3.3): a CPU work-group runs as one loop, and barriers
-        # cost more than they share.  GPUs (not measured here): V = 1; rows one line per group
-        # and wide T; columns 16 per group (coalesced reads), the rest in T.
+        # CPUs: V from the SIMD width (_lines_per_item), C = T = 1, since a CPU work-group runs as one
+        # loop and barriers cost more than they share (docs/benchmarks.md, "Measurements behind code
+        # choices"). GPUs (not measured): V = 1; rows one line per group and wide T; columns 16 per
+        # group (coalesced reads), the rest in T.
         defs = _line_defines(self.nrow) | ({"FFT_HALF": 1} if self.half else {})
         vec = _lines_per_item(rt.caps, self.dtype) if cpu else 1
         row_ct, col_ct = ((1, 1 if cpu else 256, vec), (1 if cpu else 16, 1 if cpu else 256, vec)) \

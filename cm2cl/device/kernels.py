@@ -19,10 +19,10 @@ from ..errors import KernelBuildError
 
 _SOURCES: dict[str, str] = {}
 
-#: Files built together as one program (a kernel of any of them comes from the group's program):
-#: the forward model and the solver use all of them, and PoCL spends about 0.12 s on every program
-#: before it reaches the source (its OpenCL C headers), so one program instead of six saves 0.6 s of
-#: a cold start (docs/benchmarks.md, "Cold start").
+#: Files built together as one program (a kernel of any of them comes from the group's program): the
+#: forward model and the solver use all of them, and PoCL spends a fixed time on every program before it
+#: reaches the source, so one program instead of six shortens a cold start (docs/benchmarks.md, "Cold start:
+#: what was changed").
 GROUPS = (("layout.cl", "fft_conv.cl", "xstep.cl", "splits.cl", "tv.cl", "reduce.cl"),)
 
 
@@ -125,9 +125,8 @@ def work_group_size(rt, k, cap: int = 256) -> int:
 
 def launch(rt, k, global_size, *args, cap: int = 64):
     """Run kernel ``k`` over ``global_size`` (1, 2 or 3 dims; the kernel checks its bounds) with a
-    local size of (L, 1, 1): L = a power of two within the kernel's work-group limit and ``cap``.
-    PoCL's own choice when none is given was up to 3x slower on the stencil kernels (512 x 512 x 16:
-    7.4 ms with (64, 1, 1) against 19.7 ms)."""
+    local size of (L, 1, 1): L = a power of two within the kernel's work-group limit and ``cap``, because
+    PoCL's own choice was slower on the stencil kernels (docs/benchmarks.md, "Measurements behind code choices")."""
     L = work_group_size(rt, k, cap)
     g = [int(s) for s in global_size]
     g[0] = -(-g[0] // L) * L

@@ -5,7 +5,8 @@ is a list of slabs, each a contiguous pyopencl array of (planes, py, px).  Real 
 their spectra share the same slab bounds, chosen from the larger (complex) plane.
 
 :func:`fill` and :func:`scale` work on any contiguous device array without pyopencl's elementwise
-kernels, each of which is one more program for PoCL to compile on a cold start (0.3 s apiece).
+kernels, each of which is one more program for PoCL to compile on a cold start (docs/benchmarks.md,
+"Measurements behind code choices").
 """
 
 from __future__ import annotations
