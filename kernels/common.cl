@@ -77,9 +77,7 @@ inline real_t group_sum(real_t v, __local real_t *scratch) {
  * slower: docs/benchmarks.md), and 1 on GPUs, where neighbouring work-items read neighbouring x.
  * The walk (row_item): on CPUs (VW > 1: ROW_WALK) a work-item takes whole rows, every x block of a
  * plane's row before the next plane's, so that the CPU's prefetchers follow a few sequential streams
- * (walking the planes inside each x block touched a new page in every volume and plane at each step: 5
- * volumes x 16 planes of streams, and tv_dual_step then took ~1.4x and tv_residual ~1.2x as long,
- * docs/benchmarks.md); global size (row blocks). On GPUs a work-item per x block walks the planes;
+ * (docs/benchmarks.md, "Access order on CPUs"); global size (row blocks). On GPUs a work-item per x block walks the planes;
  * global size (x blocks, row blocks).
  * Lanes past the row's end (x >= nx: `cnt` = nx - x0 lanes are real) load the row's last element,
  * are never written and are masked out of the sums. */
@@ -239,10 +237,8 @@ inline realv plane_before(__global const real_t *pz_prev, const int has_prev, co
 /* div p = -grad^T p at the VW elements i.. of plane z, row y of a slab of `planes` planes, p = (px, py,
  * pz) the TV dual: backward differences, p taken as 0 past the last index (the slab's last plane is
  * the last when has_next is 0); pz of the plane before from the slab, or for its first plane from
- * pz_prev (plane_before). Always inlined: PoCL 3.1 kept it a function called per vector of every plane
- * (perf: half of tv_residual's samples inside it). Inlined, tv_finish took ~10% less (min of 15
- * alternating launches: 9.5 vs 10.8 ms on 16 x 540 x 512, 13.5 vs 14.8 ms on 16 x 648 x 864) and
- * tv_residual the same. */
+ * pz_prev (plane_before). Always inlined: PoCL 3.1 kept it an out-of-line call per vector
+ * (docs/benchmarks.md, "Access order on CPUs"). */
 inline __attribute__((always_inline)) realv div_step(
         __global const real_t *px, __global const real_t *py, __global const real_t *pz,
         __global const real_t *pz_prev, const int has_prev, const int prev_planes, const size_t i,

@@ -255,9 +255,8 @@ inline __local fc_t *fft_line(__local fc_t *a, __local fc_t *b, const int stride
  * holds one position of FFT_VEC lines, while a line's neighbouring values are neighbours in global
  * memory.  So the kernels move FFT_VEC x FFT_VEC blocks: FFT_VEC neighbouring values of each line
  * with one vector load or store, turned around in registers by fc_transpose (m[q]'s value t <->
- * m[t]'s value q), instead of FFT_VEC single-value loads or stores per position (measured, 648 x 864 x
- * 16 float32 on PoCL without the passes: rows_r2c 6.7 ms, rows_c2r 10.1 ms against 2.8 ms for a
- * copy).  Positions past the last whole block, and work-items with fewer than FFT_VEC lines, take
+ * m[t]'s value q), instead of FFT_VEC single-value loads or stores per position (docs/benchmarks.md,
+ * "FFT row kernels").  Positions past the last whole block, and work-items with fewer than FFT_VEC lines, take
  * one value at a time. */
 /* m[t] <- value t of each line q (m[q] held the values of line q): three, two or one stage of
  * exchanging blocks of 1, 2, 4 complex values between rows r and r + B (swizzles, which compile to

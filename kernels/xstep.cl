@@ -1,4 +1,4 @@
-/* The closed-form x step of the ADMM (DESIGN.md section 3):
+/* The closed-form x step of the ADMM (docs/design.md, 3.1 The x step):
  *     (mu_v H^T H + c I) x = H^T (mu_v v - xi) + (mu_u u - eta) + (mu_w w - rho),  c = mu_u + mu_w
  * Per lateral frequency k, H^T H = a a^H with a_i = conj(H_i(k)), so by Sherman-Morrison
  *     X_i = (B_i - mu_v conj(H_i) HX) / c,   HX = (sum_i H_i B_i) / (c + mu_v sum_i |H_i|^2)

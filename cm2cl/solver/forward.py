@@ -50,11 +50,9 @@ def fast_grid(need, backend: str) -> tuple[int, int]:
     FAST_GRID_MIN_PLANE voxels or more the pair of the fewest voxels among the first few such sizes per
     axis whose plane holds no power of two above FAST_GRID_MAX_POW2 and whose rows are a multiple of
     FAST_GRID_ROW_MULTIPLE long. Why: the volume kernels walk the planes of a slab at a stride of one
-    plane; a plane of a multiple of 64 KiB puts every plane in the same sets of the cache (measured on
-    PoCL, a 256 x 256 sensor, 16 planes, ns per voxel and iteration, docs/benchmarks.md "Padded grid
-    choice": 512 x 512 (2^18) 22.2, 512 x 640 (2^16) 16.4, 576 x 512 (2^15) 13.8, 512 x 560 (2^13) 12.8,
-    540 x 512 (2^11) 12.2), and rows that are not whole vectors cost the row kernels a partial vector and
-    unaligned loads on every row (540 x 520 15.3 against 520 x 540 19.6)."""
+    plane, and a plane of a multiple of 64 KiB puts every plane in the same sets of the cache; rows that
+    are not whole vectors cost the row kernels a partial vector on every row (measured: docs/benchmarks.md,
+    "Padded grid choice")."""
     backend = fft.resolve_backend(backend)
     ny, nx = (max(int(n), 1) for n in need)
     first = (fft.good_size(ny, backend), fft.good_size(nx, backend))

@@ -116,11 +116,8 @@ def iteration_bytes(nz, padded_shape, dtype, backend, tv_iters, lean=False) -> i
     return int(real * est["real_volume"] + spectra * est["psf_spectra"])
 
 
-#: seconds per iteration over the bandwidth floor (iteration_bytes / copy rate) of cm2cl's kernels,
-#: measured on Debian's PoCL 3.1 (2-core AVX-512 CPUs, docs/benchmarks.md "ADMM iteration", iterations
-#: 11 on, demo size: 1.8-2.3 on an AMD EPYC, 1.5 on an Intel Xeon; this floor counts the fused x step,
-#: the unstored B and the rhs that TV finish makes); the larger, so that estimates do not promise too
-#: much; GPUs not measured
+#: seconds per iteration over the bandwidth floor of cm2cl's kernels, the larger of the CPUs measured so
+#: that estimates do not promise too much (docs/benchmarks.md, "ADMM iteration"); GPUs not measured
 KERNEL_FLOOR_RATIO = 2.1
 
 

@@ -5,7 +5,7 @@ one slab) or streamed (the volumes in host memory, one slab at a time on the dev
 The ADMM iteration couples planes only through sums over depth (the x step's spectral sum and the
 scalars of the stopping rule) and through TV's axial neighbours (one plane across each slab border), so
 a solve split this way computes the same iterates as the whole solve: the sums are added on the host in
-float64 and the border planes are copied into one-plane halo buffers (DESIGN.md section 5).
+float64 and the border planes are copied into one-plane halo buffers (docs/design.md, 6 Parts, slabs and streaming).
 
 Each step of an iteration visits every slab with the volumes it reads and writes (:meth:`Part.slabs`);
 a streamed part copies the slab's read set to the device before the step and its write set back after

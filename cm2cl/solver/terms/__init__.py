@@ -36,6 +36,8 @@ class GenericSet:
 
     def start(self, s, ctl) -> None:
         for t in self.terms:
+            ctl.active[t.split] = t.active(ctl)
+            ctl.weights.update(t.weights(ctl))
             t.start(s, ctl)
 
     def reset(self) -> None:

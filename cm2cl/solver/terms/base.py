@@ -31,7 +31,12 @@ class Term:
         """Its state at the start of a solve (the solver zeroed every volume, x0 set x and z)."""
 
     def active(self, ctl) -> bool:
+        """Whether its split carries a term (a split without one is neither adapted nor judged)."""
         return True
+
+    def weights(self, ctl) -> dict:
+        """The weights of its objective parts, by name (the data term's part counts as it is)."""
+        return {}
 
     def add_rhs(self, s, part, j: int, n: int, a: dict, mu: float, first: bool) -> None:
         """t (+)= mu z - dual on slab j of ``part`` (``first``: t = ...)."""

@@ -42,7 +42,7 @@ class L1(Term):
     rhs_reads = ("w", "rho")
 
     def setup(self, s) -> None:
-        self.weights = PlaneWeights(s.parts, s.l1_plane_weights, s.dtype)
+        self.plane_w = PlaneWeights(s.parts, s.l1_plane_weights, s.dtype)
 
     def add_rhs(self, s, part, j, n, a, mu, first) -> None:
         ny, nx = s.P
@@ -52,7 +52,10 @@ class L1(Term):
         ny, nx = s.P
         for i, part, j0, j1, n, a in s.walk.runs(("x", "w", "rho"), ("w", "rho")):
             s.reduce_rows(part, "l1_update", "w", x=a["x"], w=a["w"], rho=a["rho"], l1=ctl.l1,
-                          l1w=self.weights.of(i, j0, j1), mu=ctl.mu["w"], planes=n, ny=ny, nx=nx)
+                          l1w=self.plane_w.of(i, j0, j1), mu=ctl.mu["w"], planes=n, ny=ny, nx=nx)
+
+    def weights(self, ctl) -> dict:
+        return {"l1": ctl.l1}
 
     def stats(self, v: dict) -> SplitStats:
         return SplitStats(v["rw2"], v["sw2"], v["x2"], v["w2"], v["rho2"])

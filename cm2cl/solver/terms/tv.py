@@ -45,6 +45,9 @@ class TV(Term):
                           z=a["z"], px=a["px"], py=a["py"], pz=a["pz"], tau=tau, mu=mu, aw=p.tv_axial_weight,
                           iso=p.tv_isotropic, planes=n, ny=ny, nx=nx, **nb)
 
+    def weights(self, ctl) -> dict:
+        return {"tv": ctl.tv}
+
     def stats(self, v: dict) -> SplitStats:
         return SplitStats(v["ru2"], v["su2"], v["x2"], v["u2"], v["eta2"])
 
