@@ -11,14 +11,8 @@ from ..errors import InputError
 from .admm import ADMMSolver
 from .params import check_keywords, with_parameters
 
-
-@with_parameters
-def reconstruct(measurement, psf, *, dtype=np.float32, backend: str = "auto", device=None, padded_shape=None,
-                max_slab_planes: int | None = None, devices=None, max_memory=None, stream="auto",
-                overlap="auto", lean="auto", voxel_size_um=None, depths_um=None,
-                weights=None, padding: str = "full", callback=None, callback_every: int = 1,
-                x0=None, **params) -> Reconstruction:
-    """Reconstruct a 3D volume from one CM2 measurement (paper Eq. 4) on an OpenCL device.
+#: reconstruct()'s docstring; the solver parameters' entries are made from their declaration (ADMMParams)
+_DOC = """Reconstruct a 3D volume from one CM2 measurement (paper Eq. 4) on an OpenCL device.
 
     Solves ``min_x 1/2 ||C H x - y||^2 + l1 ||x||_1 + tv TV_3D(x)`` subject to ``x >= 0`` by ADMM,
     on the normalised problem: y scaled to max 1 and the PSFs to ||H|| = 1 (in float64 on the host),
@@ -97,24 +91,21 @@ def reconstruct(measurement, psf, *, dtype=np.float32, backend: str = "auto", de
     >>> rec.history["objective"].shape == (rec.iterations,)
     True
     """
+
+
+@with_parameters(_DOC)
+def reconstruct(measurement, psf, *, dtype=np.float32, backend: str = "auto", device=None, padded_shape=None,
+                max_slab_planes: int | None = None, devices=None, max_memory=None, stream="auto",
+                overlap="auto", lean="auto", voxel_size_um=None, depths_um=None,
+                weights=None, padding: str = "full", callback=None, callback_every: int = 1,
+                x0=None, **params) -> Reconstruction:
     prm = check_keywords("reconstruct", params)
     psf = validate.psf_stack(validate.image_array(psf, "psf"), "psf")
     y = validate.real_array(validate.image_array(measurement, "measurement", ndims=(2,)), "measurement", ndims=(2,))
     if y.shape != psf.shape[1:]:
         raise InputError(f"measurement: shape {y.shape} does not match the PSF's sensor grid "
                          f"{psf.shape[1:]} (psf shape {psf.shape})")
-    vs = d = None
-    if voxel_size_um is not None:
-        try:
-            vs = tuple(float(v) for v in voxel_size_um)
-        except (TypeError, ValueError):
-            vs = ()
-        if len(vs) != 3 or not all(np.isfinite(v) and v > 0 for v in vs):
-            raise InputError(f"voxel_size_um: expected 3 positive numbers (dz, dy, dx), got {voxel_size_um!r}")
-    if depths_um is not None:
-        d = np.asarray(depths_um, float).ravel()
-        if d.size != psf.shape[0] or not np.all(np.isfinite(d)):
-            raise InputError(f"depths_um: expected {psf.shape[0]} finite depths, got {np.shape(depths_um)}")
+    vs, d = _scale(voxel_size_um, depths_um, psf.shape[0])
     pad_info = None
     if padding not in ("full", "support"):
         raise InputError(f"padding: expected 'full' or 'support', got {padding!r}")
@@ -131,6 +122,23 @@ def reconstruct(measurement, psf, *, dtype=np.float32, backend: str = "auto", de
     rec.voxel_size_um, rec.depths_um = vs, d
     rec.info["padding"] = pad_info or {"padded_shape": list(solver.P), "support_px": None}
     return rec
+
+
+def _scale(voxel_size_um, depths_um, nz: int):
+    """(voxel size, depths) checked: 3 positive numbers, ``nz`` finite depths (either None)."""
+    vs = d = None
+    if voxel_size_um is not None:
+        try:
+            vs = tuple(float(v) for v in voxel_size_um)
+        except (TypeError, ValueError):
+            vs = ()
+        if len(vs) != 3 or not all(np.isfinite(v) and v > 0 for v in vs):
+            raise InputError(f"voxel_size_um: expected 3 positive numbers (dz, dy, dx), got {voxel_size_um!r}")
+    if depths_um is not None:
+        d = np.asarray(depths_um, float).ravel()
+        if d.size != nz or not np.all(np.isfinite(d)):
+            raise InputError(f"depths_um: expected {nz} finite depths, got {np.shape(depths_um)}")
+    return vs, d
 
 
 def fft_backend(backend, device) -> str:

@@ -220,18 +220,21 @@ def numpydoc(params, indent: int = 4, width: int = 110) -> str:
     return "\n".join(lines) + "\n"
 
 
-def with_parameters(func):
-    """Give ``func(first, second, *, ..., **params)`` the declared parameters as keyword-only arguments in
-    its signature (for :func:`inspect.signature` and help()) and in its docstring (at the line
-    ``{parameters}``); the function checks the names it is given with :func:`check_keywords`."""
-    sig = inspect.signature(func)
-    given = [p for p in sig.parameters.values() if p.kind is not inspect.Parameter.VAR_KEYWORD]
-    first = [p for p in given if p.kind is not inspect.Parameter.KEYWORD_ONLY]
-    declared = [inspect.Parameter(p.name, inspect.Parameter.KEYWORD_ONLY, default=p.default, annotation=p.type)
-                for p in parameters()]
-    func.__signature__ = sig.replace(parameters=first + declared + given[len(first):])
-    func.__doc__ = func.__doc__.replace("    {parameters}\n", numpydoc(parameters()))
-    return func
+def with_parameters(doc: str):
+    """A decorator: ``func(first, second, *, ..., **params)`` gets the declared parameters as keyword-only
+    arguments in its signature (for :func:`inspect.signature` and help()) and ``doc``, with their entries
+    at its line ``{parameters}``, as its docstring; the function checks the names it is given with
+    :func:`check_keywords`."""
+    def decorate(func):
+        sig = inspect.signature(func)
+        given = [p for p in sig.parameters.values() if p.kind is not inspect.Parameter.VAR_KEYWORD]
+        first = [p for p in given if p.kind is not inspect.Parameter.KEYWORD_ONLY]
+        declared = [inspect.Parameter(p.name, inspect.Parameter.KEYWORD_ONLY, default=p.default, annotation=p.type)
+                    for p in parameters()]
+        func.__signature__ = sig.replace(parameters=first + declared + given[len(first):])
+        func.__doc__ = doc.replace("    {parameters}\n", numpydoc(parameters()))
+        return func
+    return decorate
 
 
 def check_keywords(func_name: str, kw: dict) -> ADMMParams:
