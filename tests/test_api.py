@@ -136,3 +136,38 @@ def test_parameters_keep_the_checked_values_not_the_given_ones(rt):
     psf, _, y = bead_problem(7)
     rec = cm2cl.reconstruct(y, psf, tv_iters=2.0, max_iter=3.0, tol=0)
     assert rec.iterations == 3 and np.all(np.isfinite(rec.volume))
+
+
+def test_keywords_are_the_declared_parameters_with_their_defaults():
+    """Issue 23 item 3: the solver keywords of reconstruct() come from ADMMParams' declaration (signature and
+    docstring), the same 42 keywords and defaults as the hand-written signature had; an unknown keyword is a
+    TypeError, as for a plain function."""
+    from dataclasses import fields
+
+    from cm2cl.solver.params import ADMMParams
+
+    sig = inspect.signature(cm2cl.reconstruct)
+    assert sorted(sig.parameters) == sorted([
+        "adapt_max_step", "adapt_ratio", "adapt_until", "backend", "balance_factor", "balance_ratio", "callback",
+        "callback_every", "depths_um", "device", "devices", "dtype", "l1", "l1_noise_ratio", "l1_plane_power",
+        "lean", "max_iter", "max_memory", "max_slab_planes", "measurement", "mu_range", "mu_u", "mu_v", "mu_w",
+        "normalize", "overlap", "padded_shape", "padding", "patience", "penalty", "psf", "stream", "tol",
+        "tol_change", "tv", "tv_axial_weight", "tv_isotropic", "tv_iters", "tv_noise_ratio", "voxel_size_um",
+        "weights", "x0"])
+    for f in fields(ADMMParams):
+        assert sig.parameters[f.name].default == f.default, f.name
+        assert f"\n    {f.name} : " in cm2cl.reconstruct.__doc__, f.name
+    assert "tv_iters : int, default 2" in cm2cl.reconstruct.__doc__ and "Range: 1 .. 1000" in cm2cl.reconstruct.__doc__
+    with pytest.raises(TypeError, match="unexpected keyword argument 'l2'"):
+        cm2cl.reconstruct(np.ones((8, 8)), np.ones((1, 8, 8)), l2=1.0)
+
+
+def test_presets_and_priors_are_parameters():
+    from cm2cl.solver.params import PRESET_PARAMS, PRESETS, PRIORS, ADMMParams, layered
+
+    assert PRESET_PARAMS["best"] == ADMMParams(**PRESETS["best"]) and PRESET_PARAMS["balanced"] == ADMMParams()
+    p = layered(prior="points", preset="fast", tol=1e-5, l1=None)
+    assert p.tv_noise_ratio == 0.0 and p.max_iter == 100 and p.tol == 1e-5 and p.l1 is None
+    assert layered() == ADMMParams() and set(PRIORS) == {"default", "points", "points-weighted"}
+    with pytest.raises(InputError, match="preset: unknown 'quick'"):
+        layered(preset="quick")

@@ -199,3 +199,34 @@ def test_dask_local_cluster_gives_the_local_result(rt, tmp_path):
         assert r.returncode == 0, r.stderr
         assert "already done" in r.stdout and "3 computed" not in r.stdout
     np.testing.assert_array_equal(np.asarray(zarr.open_group(str(out), mode="r")["0"]), b)
+
+
+def test_executors_are_chosen_by_the_job_and_checked_before_any_output(rt, tmp_path):
+    """Issue 23 item 4: one executor protocol (in order with warm start, local devices, Dask) instead of an
+    if/elif; a job run through an explicit executor equals the one chosen for it."""
+    from cm2cl.jobs import DaskCluster, FrameStore, InOrder, LocalDevices, executor_for, run_series
+    from cm2cl.jobs.run import fingerprint
+    from cm2cl.solver.params import ADMMParams
+
+    assert isinstance(executor_for([None]), LocalDevices) and isinstance(executor_for([0], None, True), InOrder)
+    assert isinstance(executor_for([None], "tcp://127.0.0.1:9"), DaskCluster)
+    with pytest.raises(InputError, match="^warm_start: "):
+        executor_for([None], "tcp://127.0.0.1:9", warm_start=True)
+    import importlib.util
+
+    if importlib.util.find_spec("distributed"):
+        with pytest.raises(InputError, match=r"^scheduler 'tcp://127.0.0.1:9': no Dask scheduler answers"):
+            DaskCluster("tcp://127.0.0.1:9").check(np.float32)
+    psf, frames = _series(tmp_path, n=2)
+    series = FrameSeries(tmp_path / "series.tif")
+    params = ADMMParams(max_iter=5, tol=0)
+    key = fingerprint(psf, params, series, np.float32, "auto", {})
+    vols = []
+    for name, ex in (("a", InOrder(None)), ("b", None)):
+        with FrameStore.open(tmp_path / f"{name}.ome.zarr", fingerprint=key, n_frames=2, volume_shape=(4, 32, 40),
+                             dtype=np.float32) as store:
+            s = run_series(series, psf, store, params=params, key=key, executor=ex, warm_start=ex is None)
+            assert s.computed == 2 and s.iterations == 10
+            vols.append(np.stack([store.read(i) for i in range(2)]))
+            assert store.info(1)["warm"] is True
+    np.testing.assert_array_equal(vols[0], vols[1])

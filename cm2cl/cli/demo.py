@@ -63,37 +63,55 @@ def demo(outdir="cm2cl-demo", *, device=None, seed=None, max_iter: int = RECON["
 
 def _run(stage, device, seed, max_iter, say) -> dict:
     """Simulate, reconstruct, score, and write the outputs into ``stage`` (published last)."""
-    from .. import analysis
-    from ..io import OBJECT_SPACE, write_tiff
-    from ..simulate import load_scene, simulate_scene, write_simulation
-    from ..solver import reconstruct
+    from ..simulate import load_scene
 
     t0 = time.perf_counter()
-
     scene = load_scene(SCENE)
     say(f"cm2cl demo: simulating '{scene.name}': {scene.description}")
+    sim, t_sim = _simulate(scene, seed, device, say)
+    params = {**RECON, "max_iter": int(max_iter)}
+    rec, t_rec = _reconstruct(sim, params, device, say)
+    vol = np.asarray(rec.volume)
+    m, summary = _score(vol, sim, scene, rec, params, say)
+    summary["seconds"] = {"simulation": t_sim, "reconstruction": t_rec}
+    _write(stage.dir, sim, scene, rec, vol, params, m)
+    summary["seconds"]["total"] = time.perf_counter() - t0
+    stage.publish("demo.json", json.dumps(summary, indent=2))
+    return summary
+
+
+def _simulate(scene, seed, device, say):
+    from ..simulate import simulate_scene
+
     t = time.perf_counter()
     sim = simulate_scene(scene, seed, device)
     t_sim = time.perf_counter() - t
     say(f"  simulated a {sim.measurement.shape[0]} x {sim.measurement.shape[1]} {sim.measurement.dtype} "
         f"measurement and a {len(sim.depths_um)}-plane PSF in {t_sim:.1f} s "
         f"(seed {sim.record['seed']}, {sim.record['render']['path'].replace('_', '-')} model)")
+    return sim, t_sim
 
-    params = {**RECON, "max_iter": int(max_iter)}
+
+def _reconstruct(sim, params, device, say):
+    from ..solver import reconstruct
+
     say(f"  reconstructing (ADMM at the defaults, up to {params['max_iter']} iterations) ...", flush=True)
     t = time.perf_counter()
     rec = reconstruct(sim.measurement, sim.psf, device=device,
                       voxel_size_um=sim.voxel_size_um, depths_um=sim.depths_um, **params)
     t_rec = time.perf_counter() - t
-    dev = rec.info.get("device", "?")
     conv = ("converged: relative residuals and change below "
             f"{rec.info['tol']:g}" if rec.info["converged"] else "NOT converged: stopped at the iteration cap")
-    say(f"  reconstructed on {dev} in {t_rec:.1f} s: {rec.iterations} iterations, {conv}; l1 {rec.info['l1']:.3g}, "
-        f"TV {rec.info['tv']:.3g} (volume-domain noise level {rec.info['noise_x']:.3g}; measurement noise "
-        f"{rec.info['noise_sigma']:.3g} of the maximum)")
+    say(f"  reconstructed on {rec.info.get('device', '?')} in {t_rec:.1f} s: {rec.iterations} iterations, {conv}; "
+        f"l1 {rec.info['l1']:.3g}, TV {rec.info['tv']:.3g} (volume-domain noise level {rec.info['noise_x']:.3g}; "
+        f"measurement noise {rec.info['noise_sigma']:.3g} of the maximum)")
+    return rec, t_rec
 
-    vol = np.asarray(rec.volume)
-    dz, dxy = sim.voxel_size_um[0], sim.voxel_size_um[1]
+
+def _score(vol, sim, scene, rec, params, say):
+    """(the bead matching, the summary without its times), the matched pairs and errors said."""
+    from .. import analysis
+
     m = analysis.score_beads(vol, sim)
     found, true = m["found_um"], m["true_um"]
     rows = []
@@ -109,7 +127,7 @@ def _run(stage, device, seed, max_iter, say) -> dict:
             f"{r['axial_error_um']:+7.1f}")
     lat, ax = m["lateral_error_um"], m["axial_error_um"]
     summary = {
-        "scene": scene.name, "seed": sim.record["seed"], "device": dev,
+        "scene": scene.name, "seed": sim.record["seed"], "device": rec.info.get("device", "?"),
         "emitters": {"true": m["n_true"], "detected": m["n_detected"], "matched": m["n_matched"],
                      "recall": m["recall"], "precision": m["precision"]},
         "lateral_error_um": {"mean": float(lat.mean()) if lat.size else None,
@@ -124,18 +142,24 @@ def _run(stage, device, seed, max_iter, say) -> dict:
         "matching": {"threshold": analysis.emitters.DETECT_THRESHOLD,
                      "lateral_tolerance_um": m["lateral_tolerance_um"], "axial_tolerance_um": m["axial_tolerance_um"]},
         "pairs": rows,
-        "seconds": {"simulation": t_sim, "reconstruction": t_rec},
     }
     say(f"\n  emitters: {m['n_true']} true, {m['n_detected']} detected, {m['n_matched']} matched "
         f"(recall {100 * m['recall']:.0f} %, precision {100 * m['precision']:.0f} %)")
     if lat.size:
+        dz, dxy = sim.voxel_size_um[0], sim.voxel_size_um[1]
         say(f"  lateral error: mean {lat.mean():.1f} um, RMS {m['lateral_rms_um']:.1f} um, max {lat.max():.1f} um "
             f"(object voxel {dxy:.1f} um)")
         say(f"  axial error:   mean {ax.mean():+.1f} um, RMS {m['axial_rms_um']:.1f} um, max {np.abs(ax).max():.1f} um "
             f"(plane spacing {dz:.0f} um)")
+    return m, summary
 
-    # outputs: built in the staging folder, swapped in for OUTDIR at the end, demo.json last
-    tmp = stage.dir
+
+def _write(tmp, sim, scene, rec, vol, params, m) -> None:
+    """The outputs, built in the staging folder ``tmp`` (swapped in for OUTDIR at the end, demo.json last)."""
+    from .. import analysis
+    from ..io import OBJECT_SPACE, write_tiff
+    from ..simulate import write_simulation
+
     write_simulation(sim, tmp / "simulation")
     write_tiff(tmp / "reconstruction.ome.tif", vol.astype(np.float32), voxel_size_um=rec.voxel_size_um,
                depths_um=rec.depths_um,
@@ -148,6 +172,3 @@ def _run(stage, device, seed, max_iter, say) -> dict:
     analysis.mip_png(sim.ground_truth, tmp / "mip_ground_truth.png", sim.voxel_size_um, sim.depths_um,
                      title=f"{scene.name}: ground truth", gamma=0.6, region=region)
     rec.write_log(tmp / "reconstruction_log.csv")
-    summary["seconds"]["total"] = time.perf_counter() - t0
-    stage.publish("demo.json", json.dumps(summary, indent=2))
-    return summary

@@ -6,6 +6,7 @@ import argparse
 import sys
 
 from ..errors import CM2Error
+from .options import flag_names, with_flags
 
 
 class _Parser(argparse.ArgumentParser):
@@ -21,6 +22,8 @@ def build_parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     for register in _registrars():
         register(sub)
+    for command in sub.choices.values():   # library errors name parameters; the user typed options
+        command.set_defaults(flags=flag_names(command))
     return p
 
 
@@ -40,7 +43,7 @@ def main(argv=None) -> int:
     try:
         return int(args.func(args) or 0)
     except CM2Error as exc:
-        print(f"cm2cl: error: {exc}", file=sys.stderr)
+        print(f"cm2cl: error: {with_flags(str(exc), getattr(args, 'flags', {}))}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("cm2cl: interrupted", file=sys.stderr)

@@ -49,9 +49,9 @@ class FrameStore:
 
         path = Path(path)
         if path.exists() and not path.is_dir():
-            raise InputError(f"--output '{path}': exists and is not an OME-Zarr folder")
+            raise InputError(f"output '{path}': exists and is not an OME-Zarr folder")
         if not path.parent.is_dir():
-            raise InputError(f"--output '{path}': folder '{path.parent}' does not exist")
+            raise InputError(f"output '{path}': folder '{path.parent}' does not exist")
         shape = (int(n_frames),) + tuple(int(n) for n in volume_shape)
         if not path.exists():
             tmp = path.with_name(f".{path.name}.partial-{os.getpid()}")
@@ -70,7 +70,7 @@ class FrameStore:
             except OSError as exc:
                 shutil.rmtree(tmp, ignore_errors=True)
                 if not path.exists():
-                    raise InputError(f"--output '{path}': cannot create the store ({exc.strerror or exc})") from exc
+                    raise InputError(f"output '{path}': cannot create the store ({exc.strerror or exc})") from exc
         return cls._reopen(path, fingerprint, shape)
 
     @classmethod
@@ -81,16 +81,16 @@ class FrameStore:
             g = zarr.open_group(str(path), mode="r+", zarr_format=2)
             meta = dict(g.attrs).get("cm2cl")
         except Exception as exc:  # noqa: BLE001 - not a zarr group at all
-            raise InputError(f"--output '{path}': exists and is not a cm2cl OME-Zarr store; not overwritten") from exc
+            raise InputError(f"output '{path}': exists and is not a cm2cl OME-Zarr store; not overwritten") from exc
         if not meta or not (path / DONE).is_dir():
-            raise InputError(f"--output '{path}': exists and is not a cm2cl OME-Zarr store; not overwritten")
+            raise InputError(f"output '{path}': exists and is not a cm2cl OME-Zarr store; not overwritten")
         if meta.get("fingerprint") != fingerprint:
-            raise InputError(f"--output '{path}': holds another job (different PSF, parameters or frames); "
+            raise InputError(f"output '{path}': holds another job (different PSF, parameters or frames); "
                              "refusing to mix results: choose a new output")
         arr = g["0"]
         if tuple(arr.shape) != tuple(shape):
-            raise InputError(f"--output '{path}': holds an array of shape {tuple(arr.shape)}, this job needs {shape}")
-        fd = exclusive_lock(path / LOCK, f"--output '{path}': another run is writing this store; wait for it "
+            raise InputError(f"output '{path}': holds an array of shape {tuple(arr.shape)}, this job needs {shape}")
+        fd = exclusive_lock(path / LOCK, f"output '{path}': another run is writing this store; wait for it "
                                          "or choose another output")
         return cls(path, arr, fd)
 

@@ -9,30 +9,10 @@ from ..device.fft import resolve_backend
 from ..device.runtime import get_runtime
 from ..errors import InputError
 from .admm import ADMMSolver
-from .params import ADMMParams
+from .params import check_keywords, with_parameters
 
-
-_D = ADMMParams()
-
-
-def reconstruct(measurement, psf, *,
-                l1: float | None = _D.l1, tv: float | None = _D.tv, tv_axial_weight: float = _D.tv_axial_weight,
-                tv_isotropic: bool = _D.tv_isotropic, tv_iters: int = _D.tv_iters,
-                max_iter: int = _D.max_iter, tol: float = _D.tol, tol_change: float = _D.tol_change,
-                patience: int = _D.patience, penalty: str = _D.penalty,
-                mu_v: float | None = _D.mu_v, mu_u: float | None = _D.mu_u, mu_w: float | None = _D.mu_w,
-                l1_noise_ratio: float = _D.l1_noise_ratio, tv_noise_ratio: float = _D.tv_noise_ratio,
-                l1_plane_power: float = _D.l1_plane_power,
-                balance_factor: float = _D.balance_factor, balance_ratio: float = _D.balance_ratio,
-                adapt_ratio: float = _D.adapt_ratio,
-                adapt_max_step: float = _D.adapt_max_step, adapt_until: int = _D.adapt_until,
-                mu_range: float = _D.mu_range, normalize: bool = _D.normalize,
-                dtype=np.float32, backend: str = "auto", device=None, padded_shape=None,
-                max_slab_planes: int | None = None, devices=None, max_memory=None, stream="auto",
-                overlap="auto", lean="auto", voxel_size_um=None, depths_um=None,
-                weights=None, padding: str = "full", callback=None, callback_every: int = 1,
-                x0=None) -> Reconstruction:
-    """Reconstruct a 3D volume from one CM2 measurement (paper Eq. 4) on an OpenCL device.
+#: reconstruct()'s docstring; the solver parameters' entries are made from their declaration (ADMMParams)
+_DOC = """Reconstruct a 3D volume from one CM2 measurement (paper Eq. 4) on an OpenCL device.
 
     Solves ``min_x 1/2 ||C H x - y||^2 + l1 ||x||_1 + tv TV_3D(x)`` subject to ``x >= 0`` by ADMM,
     on the normalised problem: y scaled to max 1 and the PSFs to ||H|| = 1 (in float64 on the host),
@@ -47,46 +27,7 @@ def reconstruct(measurement, psf, *,
     psf : (nz, My, Mx) or (My, Mx) array
         One PSF per depth plane, on the measurement's sensor grid, offset removed; every plane
         must carry some light. Float or integer.
-    l1 : float or None
-        Weight of the l1 (sparsity) term on the normalised problem. None (default):
-        ``l1_noise_ratio`` times the volume-domain noise level ``rec.info['noise_x']``: the
-        measurement's estimated noise (``rec.info['noise_sigma']``) times the RMS PSF plane norm.
-    tv : float or None
-        Weight of 3D total variation on the normalised problem; 0 disables TV. None (default):
-        ``tv_noise_ratio`` times the volume-domain noise level.
-    tv_axial_weight : float
-        Weight of axial differences in TV relative to lateral ones (dimensionless; non-cubic
-        voxels: e.g. dx / dz).
-    tv_isotropic : bool
-        Isotropic (default) or anisotropic TV.
-    tv_iters : int
-        Chambolle dual iterations of the TV prox per ADMM iteration (warm-started), 1..1000.
-    max_iter : int
-        Iteration cap.
-    tol, tol_change, patience : float, float, int
-        Stop when every active split's relative primal and dual residuals are below ``tol`` and the
-        relative change of x is below ``tol_change``, for ``patience`` consecutive iterations
-        (Boyd et al. 2011, sec. 3.3). ``tol=0`` runs to ``max_iter``.
-    penalty : {'adaptive', 'balance', 'fixed'}
-        Penalty policy: 'adaptive' (default) starts from the problem's scale and rebalances a split's
-        penalty by sqrt(primal / dual residual), bounded by ``adapt_max_step``, when the two differ by
-        more than ``adapt_ratio`` (checked at iterations 1..10, then every 10th, up to ``adapt_until``,
-        within ``mu_range`` of the start); 'balance' is the CM2 authors' residual balancing
-        (``balance_factor`` steps when residuals differ by more than ``balance_ratio``); 'fixed'
-        keeps the initial penalties.
-    balance_factor, balance_ratio, adapt_ratio, adapt_max_step, adapt_until, mu_range : float, ..., int, float
-        Knobs of the penalty policies, as described under ``penalty``.
-    mu_v, mu_u, mu_w : float or None
-        Initial penalties of the splits v = Hx, u = x (TV), w = x (l1); None: from the problem's
-        scale (see :class:`cm2cl.solver.control.ProblemScale`).
-    l1_noise_ratio, tv_noise_ratio : float
-        Default weights relative to the volume-domain noise level (when ``l1`` / ``tv`` are None).
-    l1_plane_power : float
-        Plane i's l1 weight is ``l1`` times ||h_i||^q / mean_j ||h_j||^q (q this power, 0..4; default 0:
-        all planes alike). 2 shrinks a point source equally in every plane, keeping emitters in planes
-        whose PSF spreads its light (``rec.info['l1_plane_weights']``).
-    normalize : bool
-        Normalise y and H as above (default True).
+    {parameters}
     dtype : float32 (default) or float64 (devices with fp64 only).
     backend : {'auto', 'cl', 'vkfft', 'reikna'}
         FFT backend ('cl': cm2cl's own kernels; see :mod:`cm2cl.device.fft` for what 'auto' picks).
@@ -150,31 +91,21 @@ def reconstruct(measurement, psf, *,
     >>> rec.history["objective"].shape == (rec.iterations,)
     True
     """
-    prm = ADMMParams(l1=l1, tv=tv, tv_axial_weight=tv_axial_weight, tv_isotropic=tv_isotropic,
-                     tv_iters=tv_iters, max_iter=max_iter, tol=tol, tol_change=tol_change, patience=patience,
-                     penalty=penalty, mu_v=mu_v, mu_u=mu_u, mu_w=mu_w, l1_noise_ratio=l1_noise_ratio,
-                     tv_noise_ratio=tv_noise_ratio, l1_plane_power=l1_plane_power,
-                     balance_factor=balance_factor, balance_ratio=balance_ratio,
-                     adapt_ratio=adapt_ratio,
-                     adapt_max_step=adapt_max_step, adapt_until=adapt_until, mu_range=mu_range,
-                     normalize=normalize)
+
+
+@with_parameters(_DOC)
+def reconstruct(measurement, psf, *, dtype=np.float32, backend: str = "auto", device=None, padded_shape=None,
+                max_slab_planes: int | None = None, devices=None, max_memory=None, stream="auto",
+                overlap="auto", lean="auto", voxel_size_um=None, depths_um=None,
+                weights=None, padding: str = "full", callback=None, callback_every: int = 1,
+                x0=None, **params) -> Reconstruction:
+    prm = check_keywords("reconstruct", params)
     psf = validate.psf_stack(validate.image_array(psf, "psf"), "psf")
     y = validate.real_array(validate.image_array(measurement, "measurement", ndims=(2,)), "measurement", ndims=(2,))
     if y.shape != psf.shape[1:]:
         raise InputError(f"measurement: shape {y.shape} does not match the PSF's sensor grid "
                          f"{psf.shape[1:]} (psf shape {psf.shape})")
-    vs = d = None
-    if voxel_size_um is not None:
-        try:
-            vs = tuple(float(v) for v in voxel_size_um)
-        except (TypeError, ValueError):
-            vs = ()
-        if len(vs) != 3 or not all(np.isfinite(v) and v > 0 for v in vs):
-            raise InputError(f"voxel_size_um: expected 3 positive numbers (dz, dy, dx), got {voxel_size_um!r}")
-    if depths_um is not None:
-        d = np.asarray(depths_um, float).ravel()
-        if d.size != psf.shape[0] or not np.all(np.isfinite(d)):
-            raise InputError(f"depths_um: expected {psf.shape[0]} finite depths, got {np.shape(depths_um)}")
+    vs, d = _scale(voxel_size_um, depths_um, psf.shape[0])
     pad_info = None
     if padding not in ("full", "support"):
         raise InputError(f"padding: expected 'full' or 'support', got {padding!r}")
@@ -191,6 +122,23 @@ def reconstruct(measurement, psf, *,
     rec.voxel_size_um, rec.depths_um = vs, d
     rec.info["padding"] = pad_info or {"padded_shape": list(solver.P), "support_px": None}
     return rec
+
+
+def _scale(voxel_size_um, depths_um, nz: int):
+    """(voxel size, depths) checked: 3 positive numbers, ``nz`` finite depths (either None)."""
+    vs = d = None
+    if voxel_size_um is not None:
+        try:
+            vs = tuple(float(v) for v in voxel_size_um)
+        except (TypeError, ValueError):
+            vs = ()
+        if len(vs) != 3 or not all(np.isfinite(v) and v > 0 for v in vs):
+            raise InputError(f"voxel_size_um: expected 3 positive numbers (dz, dy, dx), got {voxel_size_um!r}")
+    if depths_um is not None:
+        d = np.asarray(depths_um, float).ravel()
+        if d.size != nz or not np.all(np.isfinite(d)):
+            raise InputError(f"depths_um: expected {nz} finite depths, got {np.shape(depths_um)}")
+    return vs, d
 
 
 def fft_backend(backend, device) -> str:

@@ -1,4 +1,6 @@
-"""Parameters of the ADMM reconstruction, shared by the device solver and its float64 twin.
+"""Parameters of the ADMM reconstruction, shared by the device solver and its float64 twin, declared
+once: each field of :class:`ADMMParams` carries its validation spec, unit and help, from which the
+checks, :func:`cm2cl.reconstruct`'s keywords and documentation and the command line's options are made.
 
 The problem (paper Eq. 4), on the scaled data (see ``normalize``):
 
@@ -10,105 +12,122 @@ sum |dx| + |dy| + axial_weight |dz| (anisotropic), forward differences, Neumann 
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, fields
-
+import inspect
+import textwrap
+from dataclasses import asdict, dataclass, field, fields
 
 from ..errors import InputError
 from ..validate import Checker
-
 
 #: penalty policies: "adaptive" (default: initial penalties from the problem's scale, then residual
 #: balancing with steps sqrt(primal/dual) up to ``adapt_max_step`` on large imbalances), "balance" (the
 #: CM2 authors' x``balance_factor`` steps), "fixed" (the initial penalties throughout)
 PENALTY_POLICIES = ("adaptive", "balance", "fixed")
 
-#: presets on the accuracy-versus-time front (measured in docs/accuracy_vs_time.md, made by
-#: tools/accuracy_vs_time.py): overrides of the defaults; "balanced" is the default itself
+#: presets on the accuracy-versus-time front (docs/accuracy_vs_time.md): overrides of the defaults;
+#: "balanced" is the default itself
 PRESETS = {
     "fast": {"max_iter": 100, "tol": 3e-3, "tol_change": 3e-3},
     "balanced": {},
     "best": {"max_iter": 1000, "tol": 1e-4, "tol_change": 1e-4},
 }
 
-
-#: priors for kinds of samples (``--prior``): 'points' for point-like emitters (beads, sparse cell
-#: bodies): TV off, which spreads a point into a plateau where the PSF blurs it (defocused planes);
-#: 'points-weighted': TV off and each plane's l1 weight ~ ||h_i||^2 (l1_plane_power 2), which shrinks a
-#: point source alike in every plane and keeps emitters in the planes whose PSF spreads its light.
-#: Measured (docs/paper_scenes.md, recall / precision at the end, recall in the near depth third):
-#: fig3_beads defaults 0.14 / 1.00 (0.00), points 0.42 / 1.00 (0.03), points-weighted 0.34 / 0.98 (0.00);
-#: fig5_scattering defaults 0.35 / 1.00 (0.01), points 0.62 / 0.99 (0.15), points-weighted 0.93 / 0.99
-#: (0.87). 'default': l1 and TV at 30 x the noise level, for extended structure
+#: priors for kinds of samples (``--prior``, measured in docs/paper_scenes.md): 'points' for point-like
+#: emitters (beads, sparse cell bodies): TV off, which spreads a point into a plateau where the PSF blurs
+#: it; 'points-weighted': TV off and each plane's l1 weight ~ ||h_i||^2, which keeps emitters in planes
+#: whose PSF spreads their light; 'default': l1 and TV for extended structure
 PRIORS = {
     "default": {},
     "points": {"tv_noise_ratio": 0.0},
     "points-weighted": {"tv_noise_ratio": 0.0, "l1_plane_power": 2.0},
 }
 
+_NONNEG = {"type": "float", "min": 0}
+_POS = {"type": "float", "min": 0, "exclusive": True}
+_ITERS = "iterations"
+
+
+def _param(default, spec: dict, help: str, *, auto: str = "", unit: str = "", flag=None, flag_help: str = ""):
+    """A field of :class:`ADMMParams` with its declaration: ``spec`` (the checks), ``help`` (one text for
+    the docstring and the command line, ``{name}`` formats a default), ``auto`` (what None means),
+    ``unit``, ``flag`` (True: a command-line option named after the field; a string: that option, a bool
+    flag that sets the opposite of the default; None: Python only)."""
+    return field(default=default, metadata={"spec": spec, "help": help, "auto": auto, "unit": unit, "flag": flag,
+                                            "flag_help": flag_help})
+
 
 @dataclass(frozen=True)
 class ADMMParams:
-    #: weight of the l1 (sparsity) term on the normalised problem; None = ``l1_noise_ratio`` times the
-    #: volume-domain noise level (:attr:`cm2cl.solver.control.ProblemScale.noise_x`: the measurement's
-    #: estimated noise sigma times the RMS PSF plane norm)
-    l1: float | None = None
-    #: weight of the 3D total variation term on the normalised problem (0 disables TV); None =
-    #: ``tv_noise_ratio`` times the volume-domain noise level
-    tv: float | None = None
-    #: default weights relative to the volume-domain noise level noise_x = sigma sqrt(sum_i ||h_i||^2 / nz)
-    #: (sigma of the measurement scaled to max 1, PSFs to ||H|| = 1). The ratio 30 was chosen on a sweep
-    #: (docs/weights.md): on bead scenes it gives about the former sigma-relative weights (noise_x ~
-    #: sigma / 15 there), on the real DiffuserCam 3D data (44 spread planes, noise_x = sigma / 800) weights
-    #: 25x lower, which show the tilted target the former weights erased. A 10x noisier measurement gets
-    #: 10x the weight.
-    l1_noise_ratio: float = 30.0
-    tv_noise_ratio: float = 30.0
-    #: the l1 weight of plane i is l1 * c_i with c_i = ||h_i||^q / mean_j ||h_j||^q (q this power): 0 weighs
-    #: every plane alike; 2 shrinks a point source by the same amount in every plane (the shrinkage of an
-    #: isolated voxel is l1 c_i / ||h_i||^2), so planes whose PSF spreads its light (small ||h_i||) keep
-    #: their emitters (docs/paper_scenes.md)
-    l1_plane_power: float = 0.0
-    #: TV weight of the axial difference relative to the lateral ones (voxels are not cubic:
-    #: dz >> dx makes axial neighbours less alike; a common choice is dx / dz)
-    tv_axial_weight: float = 1.0
-    #: isotropic (True) or anisotropic (False) TV
-    tv_isotropic: bool = True
-    #: dual (Chambolle) iterations of the TV prox per outer iteration, warm-started
-    tv_iters: int = 2
-    #: initial ADMM penalties of the splits v = Hx, u = x (TV), w = x (l1 + non-negativity); None =
-    #: from the problem's scale: mu_v = 1 (the data term's curvature on the ||H|| = 1 scale) and
-    #: mu_u = mu_w = mu_v mean_k sum_i |H_i(k)|^2, the mean of H^T H's spectrum (its maximum is 1)
-    mu_v: float | None = None
-    mu_u: float | None = None
-    mu_w: float | None = None
-    #: how penalties change between iterations (see PENALTY_POLICIES)
-    penalty: str = "adaptive"
-    #: "balance": multiply/divide a penalty by `balance_factor` when its primal and dual residuals differ
-    #: by more than `balance_ratio` (the CM2 authors' 1.1 and 1.5). "adaptive": when a split's primal and
-    #: dual residuals differ by more than `adapt_ratio`, multiply its penalty by sqrt(ratio),
-    #: bounded by `adapt_max_step`; checked at iterations 1..10, then every 10th, up to `adapt_until`
-    #: (then the penalties stay, and ADMM's convergence with fixed penalties holds). The initial penalties
-    #: from the problem's scale are near the best fixed ones on the data measured (docs/accuracy_vs_time.md),
-    #: so only a large imbalance (a poor start, or user penalties far off) moves them. The ratio 1000 (not
-    #: 100): in the first iterations the duals are still building up and r/s reads 100-1000 on a start
-    #: that is fine; on the real DiffuserCam 3D data 100 let that transient raise mu_w 700x and the
-    #: objective after 200 iterations was 14% higher (docs/weights.md); bead scenes are unchanged.
-    balance_factor: float = 1.1
-    balance_ratio: float = 1.5
-    adapt_ratio: float = 1000.0
-    adapt_max_step: float = 3.0
-    adapt_until: int = 100
-    #: penalties stay within [initial / mu_range, initial * mu_range]
-    mu_range: float = 1e4
-    #: stop when every active split's relative primal and dual residuals (Boyd et al. 2011, sec. 3.3:
-    #: ||r|| <= tol max(||Hx||, ||v||), ||s|| <= tol ||dual||) are below `tol` and the relative change
-    #: of x is below `tol_change`, for `patience` consecutive iterations
-    tol: float = 1e-3
-    tol_change: float = 1e-3
-    patience: int = 3
-    max_iter: int = 200
-    #: scale y by 1/max(y) and the PSFs so that ||H|| = 1; the result is scaled back
-    normalize: bool = True
+    l1: float | None = _param(
+        None, _NONNEG, "Weight of the l1 (sparsity) term on the normalised problem.", flag=True,
+        auto="l1_noise_ratio ({l1_noise_ratio:g}) x the volume-domain noise level: the measurement's "
+             "estimated noise times the RMS PSF plane norm (info['noise_x'], reported in the log)")
+    tv: float | None = _param(
+        None, _NONNEG, "Weight of 3D total variation on the normalised problem; 0 disables TV.", flag=True,
+        auto="tv_noise_ratio ({tv_noise_ratio:g}) x the volume-domain noise level")
+    # 30 was chosen on a sweep (docs/weights.md); a 10x noisier measurement gets 10x the weight
+    l1_noise_ratio: float = _param(
+        30.0, _NONNEG, "Default l1 weight (when l1 is None) relative to the volume-domain noise level.")
+    tv_noise_ratio: float = _param(
+        30.0, _NONNEG, "Default TV weight (when tv is None) relative to the volume-domain noise level.")
+    # q = 2 shrinks an isolated voxel by l1 c_i / ||h_i||^2 alike in every plane (docs/paper_scenes.md)
+    l1_plane_power: float = _param(
+        0.0, {"type": "float", "min": 0, "max": 4},
+        "Plane i's l1 weight is l1 x ||h_i||^q / mean_j ||h_j||^q, q this power: 0 weighs all planes alike; 2 "
+        "shrinks a point source equally in every plane, keeping emitters in planes whose PSF spreads its light "
+        "(info['l1_plane_weights']).")
+    tv_axial_weight: float = _param(
+        1.0, _POS, "Weight of axial differences in TV relative to lateral ones (non-cubic voxels: e.g. dx / dz).",
+        flag=True)
+    tv_isotropic: bool = _param(True, {"type": "bool"}, "Isotropic (True) or anisotropic (False) TV.",
+                                flag="--anisotropic", flag_help="anisotropic TV (default isotropic)")
+    tv_iters: int = _param(
+        2, {"type": "int", "min": 1, "max": 1000},
+        "Chambolle dual iterations of the TV prox per ADMM iteration (warm-started).", unit=_ITERS, flag=True)
+    mu_v: float | None = _param(
+        None, _POS, "Initial ADMM penalty of the split v = Hx.",
+        auto="from the problem's scale: 1, the data term's curvature on the ||H|| = 1 scale")
+    mu_u: float | None = _param(
+        None, _POS, "Initial ADMM penalty of the split u = x (TV).",
+        auto="mu_v x the mean of H^T H's spectrum (its maximum is 1)")
+    mu_w: float | None = _param(
+        None, _POS, "Initial ADMM penalty of the split w = x (l1 and non-negativity).",
+        auto="mu_v x the mean of H^T H's spectrum")
+    penalty: str = _param(
+        "adaptive", {"type": "str", "choices": PENALTY_POLICIES},
+        "Penalty policy: 'adaptive' starts from the problem's scale and rebalances a split's penalty by "
+        "sqrt(primal / dual residual), bounded by adapt_max_step, when the two differ by more than adapt_ratio "
+        "(iterations 1..10, then every 10th, up to adapt_until, within mu_range of the start); 'balance' is the "
+        "CM2 authors' residual balancing (balance_factor steps when the residuals differ by more than "
+        "balance_ratio); 'fixed' keeps the initial penalties.", flag=True)
+    balance_factor: float = _param(
+        1.1, {"type": "float", "min": 1, "exclusive": True}, "'balance': the factor of one penalty step.")
+    balance_ratio: float = _param(
+        1.5, {"type": "float", "min": 1}, "'balance': the residual ratio beyond which a penalty steps.")
+    # 1000, not 100: early on the duals build up and r / s reads 100-1000 on a fine start (docs/weights.md)
+    adapt_ratio: float = _param(
+        1000.0, {"type": "float", "min": 1}, "'adaptive': the residual ratio beyond which a penalty is rebalanced.")
+    adapt_max_step: float = _param(
+        3.0, {"type": "float", "min": 1, "exclusive": True}, "'adaptive': the largest factor of one rebalancing.")
+    # after it the penalties stay, so ADMM's convergence with fixed penalties holds
+    adapt_until: int = _param(
+        100, {"type": "int", "min": 0}, "'adaptive': the last iteration at which penalties are rebalanced.",
+        unit=_ITERS)
+    mu_range: float = _param(
+        1e4, {"type": "float", "min": 1}, "Penalties stay within [initial / mu_range, initial x mu_range].")
+    tol: float = _param(
+        1e-3, _NONNEG,
+        "Stop when every active split's relative primal and dual residuals are below tol (Boyd et al. 2011, "
+        "sec. 3.3) and the relative change of x is below tol_change, for patience consecutive iterations; "
+        "0 runs to max_iter.", flag=True)
+    tol_change: float = _param(1e-3, _NONNEG, "The relative change of x must also be below this to stop.",
+                               flag=True)
+    patience: int = _param(3, {"type": "int", "min": 1}, "Consecutive iterations the stopping test must hold.",
+                           unit=_ITERS, flag=True)
+    max_iter: int = _param(200, {"type": "int", "min": 1}, "Iteration cap.", unit=_ITERS, flag=True)
+    normalize: bool = _param(
+        True, {"type": "bool"}, "Scale y to max 1 and the PSFs to ||H|| = 1 (in float64 on the host; the volume "
+        "is scaled back), so that weights and penalties mean the same on every dataset.")
 
     def __post_init__(self):
         # the checked values replace the given ones: 2.0 iterations become 2, numpy scalars plain numbers
@@ -132,21 +151,95 @@ class ADMMParams:
         return 1.0 / (4.0 * (2.0 + self.tv_axial_weight ** 2))
 
 
-_NONNEG = {"type": "float", "min": 0}
-_POS = {"type": "float", "min": 0, "exclusive": True}
-_SPECS = {
-    "l1": _NONNEG, "tv": _NONNEG, "l1_noise_ratio": _NONNEG, "tv_noise_ratio": _NONNEG,
-    "l1_plane_power": {"type": "float", "min": 0, "max": 4},
-    "tv_axial_weight": _POS, "tv_isotropic": {"type": "bool"}, "tv_iters": {"type": "int", "min": 1, "max": 1000},
-    "mu_v": _POS, "mu_u": _POS, "mu_w": _POS,
-    "penalty": {"type": "str", "choices": PENALTY_POLICIES},
-    "balance_factor": {"type": "float", "min": 1, "exclusive": True},
-    "balance_ratio": {"type": "float", "min": 1},
-    "adapt_ratio": {"type": "float", "min": 1},
-    "adapt_max_step": {"type": "float", "min": 1, "exclusive": True},
-    "adapt_until": {"type": "int", "min": 0},
-    "mu_range": {"type": "float", "min": 1},
-    "tol": _NONNEG, "tol_change": _NONNEG,
-    "patience": {"type": "int", "min": 1}, "max_iter": {"type": "int", "min": 1},
-    "normalize": {"type": "bool"},
-}
+#: the fields' validation specs (the Checker's), read from the declaration
+_SPECS = {f.name: f.metadata["spec"] for f in fields(ADMMParams)}
+_DEFAULTS = {f.name: f.default for f in fields(ADMMParams)}
+
+#: the presets as parameters (checked at import: a preset naming no field, or out of bounds, fails here)
+PRESET_PARAMS = {name: ADMMParams(**o) for name, o in PRESETS.items()}
+
+
+def layered(prior: str | None = None, preset: str | None = None, **given) -> ADMMParams:
+    """The parameters of ``prior`` (:data:`PRIORS`), then ``preset`` (:data:`PRESETS`), then the values
+    ``given`` that are not None, each layer winning over the one before."""
+    for what, name, table in (("prior", prior, PRIORS), ("preset", preset, PRESETS)):
+        if name is not None and name not in table:
+            raise InputError(f"{what}: unknown {name!r} (known: {', '.join(table)})")
+    return ADMMParams.from_kwargs(**{**PRIORS[prior or "default"], **PRESETS[preset or "balanced"],
+                                     **{k: v for k, v in given.items() if v is not None}})
+
+
+@dataclass(frozen=True)
+class Param:
+    """One parameter as declared: what the docstring and the command line are made from."""
+    name: str
+    default: object
+    type: str            #: the annotation, e.g. 'float | None'
+    spec: dict
+    help: str            #: with the defaults formatted in
+    auto: str            #: what None means ('' when None is not allowed)
+    unit: str
+    flag: str | None     #: the command-line option, or None
+    flag_help: str
+
+    def bounds(self) -> str:
+        """The spec's bounds in words: '>= 0', '1 .. 1000', one of choices."""
+        s = self.spec
+        if "choices" in s:
+            return "one of " + ", ".join(repr(c) for c in s["choices"])
+        lo, hi = s.get("min"), s.get("max")
+        if lo is not None and hi is not None and not s.get("exclusive"):
+            return f"{lo:g} .. {hi:g}"
+        return ", ".join(t for t in ((f"{'>' if s.get('exclusive') else '>='} {lo:g}" if lo is not None else ""),
+                                     (f"<= {hi:g}" if hi is not None else "")) if t)
+
+
+def parameters() -> list[Param]:
+    """The declared parameters, in field order."""
+    out = []
+    for f in fields(ADMMParams):
+        m = f.metadata
+        flag = "--" + f.name.replace("_", "-") if m["flag"] is True else m["flag"]
+        out.append(Param(f.name, f.default, str(f.type), m["spec"], m["help"].format(**_DEFAULTS),
+                         m["auto"].format(**_DEFAULTS), m["unit"], flag, m["flag_help"]))
+    return out
+
+
+def numpydoc(params, indent: int = 4, width: int = 110) -> str:
+    """The numpydoc entries of ``params`` for a Parameters section."""
+    pad = " " * indent
+    lines = []
+    for p in params:
+        kind = ("{" + ", ".join(repr(c) for c in p.spec["choices"]) + "}" if "choices" in p.spec
+                else p.type.replace(" | None", " or None"))
+        text = p.help + (f" None (default): {p.auto}." if p.auto else "")
+        if p.bounds() and "choices" not in p.spec:
+            text += f" Range: {p.bounds()}" + (f" {p.unit}." if p.unit else ".")
+        lines.append(f"{pad}{p.name} : {kind}, default {p.default!r}")
+        lines.append(textwrap.fill(text, width, initial_indent=pad * 2, subsequent_indent=pad * 2))
+    return "\n".join(lines) + "\n"
+
+
+def with_parameters(doc: str):
+    """A decorator: ``func(first, second, *, ..., **params)`` gets the declared parameters as keyword-only
+    arguments in its signature (for :func:`inspect.signature` and help()) and ``doc``, with their entries
+    at its line ``{parameters}``, as its docstring; the function checks the names it is given with
+    :func:`check_keywords`."""
+    def decorate(func):
+        sig = inspect.signature(func)
+        given = [p for p in sig.parameters.values() if p.kind is not inspect.Parameter.VAR_KEYWORD]
+        first = [p for p in given if p.kind is not inspect.Parameter.KEYWORD_ONLY]
+        declared = [inspect.Parameter(p.name, inspect.Parameter.KEYWORD_ONLY, default=p.default, annotation=p.type)
+                    for p in parameters()]
+        func.__signature__ = sig.replace(parameters=first + declared + given[len(first):])
+        func.__doc__ = doc.replace("    {parameters}\n", numpydoc(parameters()))
+        return func
+    return decorate
+
+
+def check_keywords(func_name: str, kw: dict) -> ADMMParams:
+    """The parameters of ``kw``; a name that is no parameter is a TypeError, as for a plain function."""
+    for name in kw:
+        if name not in _SPECS:
+            raise TypeError(f"{func_name}() got an unexpected keyword argument {name!r}")
+    return ADMMParams(**kw)

@@ -1,0 +1,204 @@
+"""One frame of ``cm2cl reconstruct`` (whole, spread over devices, or as lateral tiles): the inputs read
+and checked, pixels masked and background removed, the solve with a progress bar, and the volume, its
+log and its record published together (a failed run leaves nothing behind)."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from ..solver.params import ADMMParams
+from .inputs import check_bin, devices_arg, layout_options, offsets, read_psf, working_psf
+from .plan import check_headers
+from .progress import Progress
+
+#: --save-background writes the removed background beside the output, as a member of its unit
+BACKGROUND_SUFFIX = ".background.ome.tif"
+
+
+def command(args, params: ADMMParams) -> int:
+    """Reconstruct one frame (``args.measurement`` a path) to ``args.output``; one summary on stdout."""
+    from .. import io
+    from ..io.prepare import prepare
+    from ..io.publish import OutputSet
+
+    out = Path(args.output)
+    check_headers(args)      # shapes and sizes from the TIFF headers, before decoding anything
+    off, psf_off = offsets(args)
+    meas, mmeta = _read_measurement(args)
+    psf, pmeta = read_psf(args)
+    wp = working_psf(args, psf, pmeta, meas.shape, psf_off)
+    pixels, names, weights = _pixels(args, meas, psf)
+    meas, background = _remove_background(args, meas, mmeta)
+    y = prepare(meas, offset=off, bin_factor=args.bin, name=f"measurement '{args.measurement}'")
+    dt = np.dtype(args.dtype)
+    planes, ny, nx = wp.h.shape   # the output is checked (writable, room, sidecars, no other run) and locked
+    vol_bytes = planes * (2 * ny * 2 * nx if args.padded else ny * nx) * dt.itemsize
+    outset = OutputSet(out, expected_bytes=vol_bytes, inputs=(args.measurement, args.psf), extras=extras(args))
+    with outset:   # an OSError while writing becomes one line; nothing is left behind
+        rec = _solve(args, y, wp, weights, params, dt)
+        rec.info.update(pixels={**pixels, "masked": names}, background=args.background, psf_fit=wp.note)
+        if background is not None and args.save_background:   # a member of the published unit
+            io.write_tiff(outset.staged("background"), background.astype(np.float32),
+                          voxel_size_um=mmeta.get("voxel_size_um") if mmeta.get("unit") == "um" else None,
+                          extra={"what": "background removed from the measurement", "method": args.background,
+                                 "measurement": str(args.measurement)})
+        vol = _write(args, outset, rec, dt, wp.scale)
+    _report(out, outset, rec, wp.scale, vol)
+    return 0
+
+
+def check_options(args) -> None:
+    """The frame's options and output, checked before any work; creates nothing."""
+    from ..io.publish import check_output_file
+
+    out = Path(args.output)
+    if out.suffix.lower() not in (".tif", ".tiff"):
+        raise InputError(f"--output '{out}': must end in .ome.tif, .tif or .tiff (or .ome.zarr for a series)")
+    check_output_file(out, 0, (args.measurement, args.psf), extras=extras(args))
+    offsets(args)
+    check_bin(args.bin)
+    if args.background:
+        from ..io.background import check_background_spec
+
+        check_background_spec(args.background)
+    if args.mask:
+        from ..analysis.pixels import MASKS
+
+        bad = [n for n in args.mask.split(",") if n.strip() and n.strip() not in MASKS]
+        if bad:
+            raise InputError(f"--mask: unknown {', '.join(map(repr, bad))} (known: {', '.join(MASKS)})")
+
+
+def extras(args):
+    """The output's extra members (the background with --save-background)."""
+    return {"background": BACKGROUND_SUFFIX} if args.save_background else None
+
+
+def _read_measurement(args):
+    from .. import io
+    from ..io.prepare import check_image
+
+    meas, mmeta = io.read_tiff(args.measurement)
+    if meas.ndim != 2:
+        raise InputError(f"measurement '{args.measurement}': expected a 2D image, got shape {meas.shape}")
+    check_image(meas, f"measurement '{args.measurement}'")    # numeric and finite before anything reads them
+    return meas, mmeta
+
+
+def _pixels(args, meas, psf):
+    """(the saturated / hot pixel report, the masks asked for, the data term's weights or None)."""
+    from ..analysis.pixels import check_pixels, mask_weights
+    from ..io.prepare import bin_image
+
+    pixels = check_pixels(meas, args.saturation, psf)
+    names = [n.strip() for n in args.mask.split(",") if n.strip()] if args.mask else []
+    weights = None
+    if names:                      # a binned pixel is masked when any of its sensor pixels is
+        weights = (bin_image(1.0 - mask_weights(meas, names, args.saturation, psf), args.bin) == 0).astype(float)
+    return pixels, names, weights
+
+
+def _remove_background(args, meas, mmeta):
+    """(the measurement, the background removed or None) for --background."""
+    if not args.background:
+        return meas, None
+    from ..io.background import parse_background, remove_background
+
+    px_um = (mmeta.get("voxel_size_um") or (None,))[-1] if mmeta.get("unit") == "um" else None
+    return remove_background(meas, parse_background(args.background, px_um), args.device)
+
+
+def _solve(args, y, wp, weights, params: ADMMParams, dt):
+    from ..solver import reconstruct
+
+    devs = devices_arg(args.device)
+    if args.tile:
+        return _tiled(args, y, wp, dt, devs, weights, params)
+    progress = Progress(params.max_iter, args.quiet)
+    try:
+        return reconstruct(y, wp.h, dtype=dt, backend=args.backend, device=devs[0],
+                           devices=devs if len(devs) > 1 else None, **layout_options(args), weights=weights,
+                           padding=args.padding, callback=progress, voxel_size_um=wp.voxel_size_um,
+                           depths_um=wp.depths_um, **params.as_dict())
+    finally:
+        progress.close()
+
+
+def _tiled(args, y, wp, dt, devs, weights, params: ADMMParams):
+    """A single frame as lateral tiles (cm2cl.jobs.tiles), wrapped as a Reconstruction for the writer."""
+    from ..jobs.tiles import reconstruct_tiled
+    from ..solver.result import Reconstruction
+
+    if len(devs) > 1 or weights is not None or args.padding != "full" or args.padded:
+        raise InputError("--tile: not with several devices, --mask, --padding support or --padded")
+    last = {}
+
+    def progress(k, n, rec):
+        last.update(rec=rec)
+        if not args.quiet:
+            print(f"cm2cl: tile {k}/{n}: {rec.iterations} iterations, {rec.info['stop']}", file=sys.stderr)
+
+    kw = {k: v for k, v in params.as_dict().items() if k != "normalize"}   # the tiles normalise as one frame
+    vol, info = reconstruct_tiled(y, wp.h, tuple(args.tile), args.halo, dtype=dt, backend=args.backend,
+                                  device=devs[0], progress=progress, **kw)
+    rec = last["rec"]
+    out = Reconstruction(volume_padded=vol, crop=(slice(0, vol.shape[1]), slice(0, vol.shape[2])), log=rec.log,
+                         scaling={"psf_scale": 1.0, "y_scale": 1.0}, params=rec.params,
+                         info={**rec.info, "tiles": info, "l1": info["l1"], "tv": info["tv"],
+                               "noise_x": info["noise_x"], "noise_sigma": info["noise_sigma"],
+                               "converged": all(info["converged"]),
+                               "stop": f"{sum(info['converged'])} of {info['tiles']} tiles converged"})
+    out.voxel_size_um, out.depths_um = wp.voxel_size_um, wp.depths_um
+    return out
+
+
+def _write(args, outset, rec, dt, how):
+    from .. import io
+
+    # the volume in the dtype of the solve (the solver's rescaling may promote it to float64)
+    vol = (rec.volume_padded if args.padded else rec.volume).astype(dt, copy=False)
+    extra = {"what": "cm2cl reconstruction", "measurement": str(args.measurement), "psf": str(args.psf),
+             "params": rec.params, "scaling": rec.scaling, "info": rec.info, "padded": bool(args.padded),
+             "voxel_space": io.OBJECT_SPACE if rec.voxel_size_um else None, "scale": how}
+    io.write_tiff(outset.staged("volume"), vol, voxel_size_um=rec.voxel_size_um, depths_um=rec.depths_um,
+                  extra=extra)
+    rec.write_log(outset.staged("log"), fmt="csv")
+    rec.write_log(outset.staged("record"), fmt="json", extra=outset.record_fields())
+    outset.publish()   # committed, then the old sidecars, the volume, the new sidecars: never two runs mixed
+    return vol
+
+
+def _report(out, outset, rec, how, vol):
+    last, info = rec.log[-1], rec.info
+    scale = "voxel {:g} x {:g} x {:g} um (z, y, x; {})".format(*rec.voxel_size_um, how) if rec.voxel_size_um else how
+    how_stop = ("converged" if info["converged"] else
+                f"NOT converged: stopped at --max-iter, relative residuals {last['primal_rel']:.1e} / "
+                f"{last['dual_rel']:.1e} against tol {info['tol']:g}")
+    print(f"{out}: {vol.shape} {vol.dtype} volume, {scale}; {rec.iterations} iterations, {how_stop}; "
+          f"l1 {info['l1']:.3g}, tv {info['tv']:.3g} (volume-domain noise level {info['noise_x']:.3g}; "
+          f"measurement noise {info['noise_sigma']:.3g} of max y); "
+          f"objective {last['objective']:.4e}, {last['seconds']:.1f} s on {info['device']}; "
+          f"log: {outset.sidecars['log'].name}, {outset.sidecars['record'].name}")
+    lay = info.get("layout") or []
+    if len(lay) > 1 or any(p["streamed"] or p.get("lean") for p in lay):
+        import resource
+
+        rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024   # Linux: KiB
+        print("  planes: " + "; ".join(
+            f"{p['planes'][0]}..{p['planes'][1] - 1} on {p['device']}"
+            + (f" streamed in slabs of {p['slab_planes']}{' (double-buffered)' if p.get('overlap') else ''}"
+               if p["streamed"] else f" resident, lean (x spectra in slabs of {p['slab_planes']})" if p.get("lean")
+               else " resident") for p in lay)
+            + f"; {info['moved_bytes'] / 1e9:.2f} GB moved between host and devices, "
+              f"{info['device_bytes'] / 2**30:.2f} GiB on the devices, peak host RSS {rss / 2**30:.2f} GiB")
+    px = info.get("pixels") or {}
+    for name in ("saturated", "hot"):
+        c = px.get(name, {}).get("count", 0)
+        if c:
+            print(f"  {c} {name} pixel(s) in the measurement, first at (row, column) "
+                  f"{', '.join(map(str, px[name]['first'][:5]))}; "
+                  + ("masked in the data term" if name in px.get("masked", []) else f"not masked (--mask {name})"))

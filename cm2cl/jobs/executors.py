@@ -1,0 +1,200 @@
+"""Executors of a job of many frames: they take the frames a store is missing and hand each result to
+``finish(i, volume, info)``. :class:`InOrder` runs them one after the other on one device, each frame
+starting from the previous one's stored volume (warm start); :class:`LocalDevices` runs one worker thread
+per local OpenCL device; :class:`DaskCluster` submits them to a Dask distributed scheduler. Every solver
+is built once per (job, device) and reused for every frame it takes (its PSF spectra computed once)."""
+
+from __future__ import annotations
+
+import queue
+import threading
+import time
+from dataclasses import dataclass
+from typing import Callable, Protocol
+
+import numpy as np
+
+from ..errors import InputError
+from ..solver.params import ADMMParams
+from .frames import FrameSeries
+
+#: solvers of this process, by (job fingerprint, device): Dask workers keep theirs between tasks
+_SOLVERS: dict = {}
+_SOLVERS_LOCK = threading.Lock()
+
+Finish = Callable[[int, np.ndarray, dict], None]
+
+
+def _solver(key, psf, params, dtype, backend, device, solver_kw):
+    from ..solver.admm import ADMMSolver
+
+    with _SOLVERS_LOCK:
+        if (key, device) not in _SOLVERS:
+            _SOLVERS[(key, device)] = (ADMMSolver(psf, params, dtype=dtype, backend=backend, device=device,
+                                                  **(solver_kw or {})), threading.Lock())
+        return _SOLVERS[(key, device)]
+
+
+def solve_frame(key, psf, params_dict, dtype, backend, y, device=None, solver_kw=None, x0=None):
+    """One frame on this process's solver for (key, device): (volume, info). Runs on Dask workers too.
+    ``solver_kw``: ADMMSolver's layout options (padded_shape, max_memory, stream, lean); ``x0`` a warm start."""
+    params = ADMMParams.from_kwargs(**params_dict)
+    solver, lock = _solver(key, psf, params, np.dtype(dtype), backend, device, solver_kw)
+    with lock:
+        t = time.perf_counter()
+        rec = solver.solve(y, x0=x0)
+    info = {"iterations": rec.iterations, "converged": bool(rec.info["converged"]), "stop": rec.info["stop"],
+            "seconds": time.perf_counter() - t, "device": rec.info["device"],
+            "objective": rec.log[-1]["objective"], "moved_bytes": rec.info["moved_bytes"]}
+    return np.asarray(rec.volume), info
+
+
+@dataclass(frozen=True)
+class FrameJob:
+    """What every frame of a job shares: the frames, the PSF stack on the working grid, the parameters,
+    how a decoded frame becomes a measurement (``prepare``), and the solver's options."""
+    series: FrameSeries
+    psf: np.ndarray
+    params: ADMMParams
+    key: str                         #: the job's fingerprint, which also keys the cached solvers
+    prepare: Callable = lambda a: np.asarray(a, np.float64)
+    dtype: str = "float32"
+    backend: str = "auto"
+    solver_kw: dict | None = None    #: ADMMSolver's layout options (padded_shape, max_memory, stream, lean)
+
+    def measurement(self, i: int) -> np.ndarray:
+        return self.prepare(self.series.read(i))
+
+    def solve(self, i: int, device=None, x0=None):
+        """Frame ``i`` on this process's solver for ``device``: (volume, info)."""
+        return solve_frame(self.key, self.psf, self.params.as_dict(), self.dtype, self.backend, self.measurement(i),
+                           device, self.solver_kw, x0)
+
+
+class Executor(Protocol):
+    """Runs frames ``todo`` of ``job``, results to ``finish``; ``store`` holds the frames already done."""
+
+    where: str                       #: where the frames run, for the summary ('' when the devices say it)
+    devices: list                    #: the local devices it uses (None: the automatic choice)
+
+    def check(self, dtype) -> None:
+        """Refuse, before any output exists, what cannot run here (unknown device, no scheduler, no fp64)."""
+
+    def run(self, job: FrameJob, todo: list[int], finish: Finish, store) -> None:
+        ...
+
+
+class InOrder:
+    """Warm start: frame t starts from frame t - 1's stored volume, read back from the store (so a resumed
+    job gives the same bits as an uninterrupted one); the frames run in order on one device."""
+
+    where = ""
+
+    def __init__(self, device=None):
+        self.device, self.devices = device, [device]
+
+    def check(self, dtype) -> None:
+        _check_devices([self.device], dtype)
+
+    def run(self, job: FrameJob, todo: list[int], finish: Finish, store) -> None:
+        for i in todo:   # ascending: frame i - 1 is in the store before frame i starts (or i == 0)
+            x0 = store.read(i - 1) if i > 0 else None
+            vol, info = job.solve(i, self.device, x0)
+            info["warm"] = x0 is not None
+            finish(i, vol, info)
+
+
+class LocalDevices:
+    """One worker thread per local device, each taking the next missing frame; each frame starts from zero,
+    so a resumed job gives the same bits as an uninterrupted one on the same device."""
+
+    where = ""
+
+    def __init__(self, devices=(None,)):
+        self.devices = list(devices)
+
+    def check(self, dtype) -> None:
+        _check_devices(self.devices, dtype)
+
+    def run(self, job: FrameJob, todo: list[int], finish: Finish, store) -> None:
+        q: queue.Queue = queue.Queue()
+        for i in todo:
+            q.put(i)
+        errors: list = []
+
+        def worker(device):
+            try:
+                while not errors:
+                    try:
+                        i = q.get_nowait()
+                    except queue.Empty:
+                        return
+                    finish(i, *job.solve(i, device))
+            except BaseException as exc:  # noqa: BLE001 - handed to the caller below
+                errors.append(exc)
+
+        threads = [threading.Thread(target=worker, args=(d,), daemon=True) for d in self.devices]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+        if errors:
+            raise errors[0]
+
+
+class DaskCluster:
+    """The frames as tasks on a Dask distributed scheduler (``tcp://host:port``): one solver per worker
+    process, cached across tasks; pin each worker to a device with ``CM2CL_DEVICE`` in its environment."""
+
+    def __init__(self, address: str):
+        self.address = self.where = address
+        self.devices = [None]   # the workers' own (CM2CL_DEVICE)
+
+    def client(self, timeout: str = "10s"):
+        try:
+            from distributed import Client
+        except ImportError as exc:
+            raise InputError("scheduler: needs Dask distributed (pip install 'cm2cl[dask]')") from exc
+        try:
+            return Client(self.address, timeout=timeout)
+        except (OSError, TimeoutError, ValueError) as exc:
+            raise InputError(f"scheduler '{self.address}': no Dask scheduler answers there ({exc})") from exc
+
+    def check(self, dtype) -> None:
+        self.client("5s").close()
+
+    def run(self, job: FrameJob, todo: list[int], finish: Finish, store) -> None:
+        from distributed import as_completed
+
+        client = self.client()
+        try:
+            psf_f = client.scatter(np.asarray(job.psf), broadcast=True)
+            pd = job.params.as_dict()
+            futs = {client.submit(solve_frame, job.key, psf_f, pd, job.dtype, job.backend, job.measurement(i),
+                                  solver_kw=job.solver_kw, pure=False): i for i in todo}
+            for fut in as_completed(list(futs)):
+                finish(futs[fut], *fut.result())
+        finally:
+            client.close()
+
+
+def executor_for(devices=(None,), scheduler: str | None = None, warm_start: bool = False) -> Executor:
+    """The executor of a job: in order on one device with ``warm_start``, else on ``scheduler`` when given,
+    else on the local ``devices``."""
+    devices = list(devices)
+    if warm_start:
+        if scheduler or len(devices) != 1:
+            raise InputError("warm_start: frame t starts from frame t - 1, so the frames run in order on one device "
+                             "(no scheduler, one device)")
+        return InOrder(devices[0])
+    return DaskCluster(scheduler) if scheduler else LocalDevices(devices)
+
+
+def _check_devices(devices, dtype) -> None:
+    """Every device opens (an unknown one fails here) and, for float64, has fp64."""
+    from ..device import get_runtime
+
+    for d in devices:
+        rt = get_runtime(d)
+        if np.dtype(dtype) == np.float64:
+            rt.check_dtype(np.dtype(dtype))
