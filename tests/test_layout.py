@@ -51,3 +51,16 @@ def test_each_folder_says_what_it_owns():
             continue
         doc = ast.get_docstring(ast.parse(init.read_text()))
         assert doc and len(doc) > 40, f"{d.name}/__init__.py has no docstring saying what it owns"
+
+
+def test_every_subpackage_ships_in_the_wheel():
+    """pyproject.toml lists the packages by name: a new subpackage missing there is absent from the wheel
+    (and the installed package fails to import)."""
+    try:
+        import tomllib
+    except ModuleNotFoundError:   # Python 3.10: the same parser as tomli
+        import tomli as tomllib
+
+    listed = set(tomllib.loads((PKG.parent / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
+    found = {".".join(p.parent.relative_to(PKG.parent).parts) for p in PKG.rglob("__init__.py")}
+    assert found <= listed, sorted(found - listed)
