@@ -173,7 +173,7 @@ def main(argv=None):
                     help="measured modes, ';'-separated (default all: " + "; ".join(m[0] for m in MODES) + ")")
     ap.add_argument("--skip", default="", help="comma list of parts to skip: plans,measured,series")
     a = ap.parse_args(argv)
-    from cm2cl.cli.reconstruct import _size
+    from cm2cl.cli.options import size as _size
     from cm2cl.device import get_runtime
 
     rt = get_runtime()

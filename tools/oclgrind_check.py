@@ -41,6 +41,7 @@ def workload():
     from cm2cl.device import fft, get_runtime, kernels
     from cm2cl.device.fft_kernels import ClPlan
     from cm2cl.solver.admm import ADMMSolver
+    from cm2cl.solver.terms import default_terms
     from cm2cl.solver.forward import ForwardModel
     from cm2cl.solver.params import ADMMParams
 
@@ -92,6 +93,13 @@ def workload():
                 s.solve(meas.astype(dtype))
                 for name in ("w", "rho", "eta"):   # the state the iteration derives (split_state, tv_eta)
                     s.get_volume(name)
+                # the same objective term by term (kernels/terms.cl: each term's own state and kernels)
+                g = ADMMSolver(psf.astype(dtype), ADMMParams(max_iter=3, tol=0, l1=1e-3, tv=1e-3, tv_isotropic=iso),
+                               dtype=dtype, backend="cl", padded_shape=(16, 30), max_slab_planes=slabs,
+                               terms=default_terms(False))
+                for part in g.parts:
+                    g._row_layout(part, vw, rows)
+                g.solve(meas.astype(dtype))
         cm2cl.reconstruct(meas, psf, dtype=dtype, backend="cl", max_iter=2, tv=0.0, padded_shape=(16, 20))
         # streamed slabs (halo buffers, one-plane edge copies) with plane-weighted l1
         cm2cl.reconstruct(meas, psf, dtype=dtype, backend="cl", max_iter=2, l1=1e-3, tv=1e-3, padded_shape=(16, 20),

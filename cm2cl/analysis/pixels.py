@@ -84,7 +84,7 @@ def mask_weights(img, names, level=None, psf=None) -> np.ndarray:
     """Data-term weights: 1 everywhere, 0 on the pixels of the named checks ('saturated', 'hot')."""
     unknown = [n for n in names if n not in MASKS]
     if unknown:
-        raise InputError(f"--mask: unknown {', '.join(map(repr, unknown))} (known: {', '.join(MASKS)})")
+        raise InputError(f"mask: unknown {', '.join(map(repr, unknown))} (known: {', '.join(MASKS)})")
     a = np.asarray(img)
     w = np.ones(a.shape)
     for n in names:

@@ -22,15 +22,15 @@ def parse_background(text: str, pixel_um: float | None):
     for a radius in um)."""
     m = re.fullmatch(r"opening:([0-9.eE+-]+)(px|um)?", str(text).strip())
     if not m:
-        raise InputError(f"--background: expected 'opening:RADIUS_UM' or 'opening:RADIUSpx', got {text!r}")
+        raise InputError(f"background: expected 'opening:RADIUS_UM' or 'opening:RADIUSpx', got {text!r}")
     try:
         r = float(m.group(1))
     except ValueError as exc:
-        raise InputError(f"--background: {m.group(1)!r} is not a number") from exc
+        raise InputError(f"background: {m.group(1)!r} is not a number") from exc
     if m.group(2) == "px":
         return r
     if not pixel_um:
-        raise InputError("--background: a radius in um needs the measurement's pixel size (its TIFF has none); "
+        raise InputError("background: a radius in um needs the measurement's pixel size (its TIFF has none); "
                          "give the radius in pixels, e.g. 'opening:40px'")
     return r / float(pixel_um)
 
@@ -39,7 +39,7 @@ def check_background_spec(text: str) -> None:
     """The syntax (and a pixel radius >= 1) of ``--background``, before any image is read."""
     r = parse_background(text, pixel_um=1.0)
     if str(text).strip().endswith("px") and r < 1:
-        raise InputError(f"--background: a radius of {r:g} px is smaller than a pixel (needs >= 1)")
+        raise InputError(f"background: a radius of {r:g} px is smaller than a pixel (needs >= 1)")
 
 
 def remove_background(img, radius_px: float, device=None):

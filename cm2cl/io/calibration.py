@@ -46,14 +46,14 @@ def parse_dark(text: str):
         try:
             return ("corners", int(t.split(":", 1)[1]))
         except ValueError:
-            raise InputError(f"--dark: expected corners:N (a box size in pixels), got {text!r}") from None
+            raise InputError(f"dark: expected corners:N (a box size in pixels), got {text!r}") from None
     if t.startswith("region:"):
         try:
             rows, cols = t.split(":", 1)[1].split(",")
             r0, r1 = (int(v) for v in rows.split(":"))
             c0, c1 = (int(v) for v in cols.split(":"))
         except ValueError:
-            raise InputError(f"--dark: expected region:R0:R1,C0:C1 (rows R0..R1-1, columns C0..C1-1), "
+            raise InputError(f"dark: expected region:R0:R1,C0:C1 (rows R0..R1-1, columns C0..C1-1), "
                              f"got {text!r}") from None
         return ("region", (r0, r1, c0, c1))
     try:

@@ -62,7 +62,7 @@ def _record_of(target: Path):
     return True, doc if isinstance(doc, dict) else None
 
 
-def check_output_file(target, expected_bytes: int = 0, inputs=(), what: str = "--output",
+def check_output_file(target, expected_bytes: int = 0, inputs=(), what: str = "output",
                       extras: dict | None = None) -> Path:
     """Check an output file and its sidecars before any work, creating nothing (InputError naming
     ``what`` otherwise). Returns its folder."""
@@ -96,7 +96,7 @@ class OutputSet:
     ``outset.publish()`` moves the staged members in as one unit. Leaving the block releases the lock and
     removes what was not published; an OSError while writing becomes one InputError."""
 
-    def __init__(self, target, expected_bytes: int = 0, inputs=(), what: str = "--output",
+    def __init__(self, target, expected_bytes: int = 0, inputs=(), what: str = "output",
                  extras: dict | None = None):
         self.target = t = Path(target)
         self.what = what

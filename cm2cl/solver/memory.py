@@ -174,7 +174,7 @@ def plan_layout(nz, padded_shape, dtype, backend, runtimes, *, max_memory=None, 
         raise ValueError(f"lean: expected 'auto', True or False, got {lean!r}")
     if lean is True and stream is True:
         raise InputError("lean and stream: the lean layout keeps every plane on the device, streaming keeps "
-                         "them in host memory; ask for one of them (--lean always or --stream always)")
+                         "them in host memory; ask for one of them")
     terms = {"real_volumes": real_volumes, "nslots": nslots}
     est = memory_estimate(1, padded_shape, dtype, backend, scratch_per_plane, **terms)
     per, fixed, vols = est["per_plane"], est["fixed"], est["volumes_per_plane"]
