@@ -24,11 +24,11 @@ __kernel void x_change(__global const real_t *x, __global const real_t *x_old,
     add_partials(partials, pstride, g, slot0, sums, 2);
 }
 
-/* t = (add ? t : 0) + mu z - dual over one slab: one identity split's part of the x step's
- * right-hand side. */
-__kernel void rhs_add(__global real_t *t, __global const real_t *z, __global const real_t *dual,
-                      const real_t mu, const int add, const int planes, const int ny, const int nx,
-                      const int rows) {
+/* out = (add ? out : 0) + a p + b q over one slab: an identity split's part of the x step's right-hand
+ * side (a = mu, p = z, b = -1, q = dual), the TV prox's argument x + eta / mu (add = 0, b = 1/mu). */
+__kernel void combine(__global real_t *out, __global const real_t *p, __global const real_t *q,
+                      const real_t a, const real_t b, const int add, const int planes, const int ny,
+                      const int nx, const int rows) {
     int xb0, xb1, y0, y1;
     size_t item;
     if (!row_item(nx, ny, rows, &xb0, &xb1, &y0, &y1, &item)) return;
@@ -37,8 +37,8 @@ __kernel void rhs_add(__global real_t *t, __global const real_t *z, __global con
             for (int xb = xb0; xb < xb1; xb++) {
                 const int x0 = xb * VW, cnt = nx - x0;
                 const size_t i = slab_index(zz, y, x0, ny, nx);
-                const realv r = mu * load_row(z, i, cnt) - load_row(dual, i, cnt);
-                store_row(add ? load_row(t, i, cnt) + r : r, t, i, cnt);
+                const realv r = a * load_row(p, i, cnt) + b * load_row(q, i, cnt);
+                store_row(add ? load_row(out, i, cnt) + r : r, out, i, cnt);
             }
 }
 
@@ -74,21 +74,6 @@ __kernel void l1_update(__global const real_t *x, __global real_t *w, __global r
         }
     const real_t sums[5] = {lanes_sum(a0), lanes_sum(a1), lanes_sum(a2), lanes_sum(a3), lanes_sum(a4)};
     add_partials(partials, pstride, g, slot0, sums, 5);
-}
-
-/* The TV prox's argument z = x + eta / mu over one slab. */
-__kernel void tv_argument(__global real_t *z, __global const real_t *x, __global const real_t *eta,
-                          const real_t mu, const int planes, const int ny, const int nx, const int rows) {
-    int xb0, xb1, y0, y1;
-    size_t item;
-    if (!row_item(nx, ny, rows, &xb0, &xb1, &y0, &y1, &item)) return;
-    for (int y = y0; y < y1; y++)
-        for (int zz = 0; zz < planes; zz++)
-            for (int xb = xb0; xb < xb1; xb++) {
-                const int x0 = xb * VW, cnt = nx - x0;
-                const size_t i = slab_index(zz, y, x0, ny, nx);
-                store_row(load_row(x, i, cnt) + load_row(eta, i, cnt) / mu, z, i, cnt);
-            }
 }
 
 /* The TV split u = x after the dual iterations (tv.cl) on p:

@@ -16,8 +16,8 @@ class GenericSet:
     solver's loop runs the x step on their rhs and then each term's update."""
 
     fused = False
-    kernels = (("terms.cl", "x_change"), ("terms.cl", "rhs_add"), ("terms.cl", "l1_update"),
-               ("terms.cl", "tv_argument"), ("terms.cl", "tv_update"))
+    kernels = (("terms.cl", "x_change"), ("terms.cl", "combine"), ("terms.cl", "l1_update"),
+               ("terms.cl", "tv_update"))
 
     def __init__(self, data: Term, regularisers):
         self.data, self.regs = data, tuple(regularisers)

@@ -46,7 +46,8 @@ class L1(Term):
 
     def add_rhs(self, s, part, j, n, a, mu, first) -> None:
         ny, nx = s.P
-        s.row_grid(part, "rhs_add", t=a["g"], z=a["w"], dual=a["rho"], mu=mu, add=not first, planes=n, ny=ny, nx=nx)
+        s.row_grid(part, "combine", out=a["g"], p=a["w"], q=a["rho"], a=mu, b=-1.0, add=not first, planes=n, ny=ny,
+                   nx=nx)
 
     def update(self, s, ctl) -> None:
         ny, nx = s.P

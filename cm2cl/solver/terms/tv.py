@@ -18,13 +18,15 @@ class TV(Term):
 
     def add_rhs(self, s, part, j, n, a, mu, first) -> None:
         ny, nx = s.P
-        s.row_grid(part, "rhs_add", t=a["g"], z=a["u"], dual=a["eta"], mu=mu, add=not first, planes=n, ny=ny, nx=nx)
+        s.row_grid(part, "combine", out=a["g"], p=a["u"], q=a["eta"], a=mu, b=-1.0, add=not first, planes=n, ny=ny,
+                   nx=nx)
 
     def update(self, s, ctl) -> None:
         p, (ny, nx), mu = s.p, s.P, ctl.mu["u"]
         tau = ctl.tv / mu
         for i, part, j0, j1, n, a in s.walk.runs(("x", "eta"), ("z",)):
-            s.row_grid(part, "tv_argument", z=a["z"], x=a["x"], eta=a["eta"], mu=mu, planes=n, ny=ny, nx=nx)
+            s.row_grid(part, "combine", out=a["z"], p=a["x"], q=a["eta"], a=1.0, b=1.0 / mu, add=False, planes=n,
+                       ny=ny, nx=nx)
         grid = ("px", "py", "pz")
         for _ in range(p.tv_iters if tau > 0 else 0):
             # the last slab first: its residual needs the previous slab's p before this step, its dual
