@@ -140,7 +140,7 @@ def test_parameters_keep_the_checked_values_not_the_given_ones(rt):
 
 def test_keywords_are_the_declared_parameters_with_their_defaults():
     """Issue 23 item 3: the solver keywords of reconstruct() come from ADMMParams' declaration (signature and
-    docstring), the same 42 keywords and defaults as the hand-written signature had; an unknown keyword is a
+    docstring), the 42 keywords and defaults the hand-written signature had and issue 24's background ones; an unknown keyword is a
     TypeError, as for a plain function."""
     from dataclasses import fields
 
@@ -148,7 +148,7 @@ def test_keywords_are_the_declared_parameters_with_their_defaults():
 
     sig = inspect.signature(cm2cl.reconstruct)
     assert sorted(sig.parameters) == sorted([
-        "adapt_max_step", "adapt_ratio", "adapt_until", "backend", "balance_factor", "balance_ratio", "callback",
+        "adapt_max_step", "adapt_ratio", "adapt_until", "background", "camera", "background_scale_px", "backend", "balance_factor", "balance_ratio", "callback",
         "callback_every", "depths_um", "device", "devices", "dtype", "l1", "l1_noise_ratio", "l1_plane_power",
         "lean", "max_iter", "max_memory", "max_slab_planes", "measurement", "mu_range", "mu_u", "mu_v", "mu_w",
         "normalize", "overlap", "padded_shape", "padding", "patience", "penalty", "psf", "stream", "tol",

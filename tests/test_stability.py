@@ -113,7 +113,7 @@ def _scaled(s_psf, s_y):
 #: seen 3.2e-4, bound 3e-3.
 CASES = {
     "all_zero_measurement": (lambda: (_base()[0], np.zeros(M)), {}, None),
-    "constant_measurement": (lambda: (_base()[0], np.full(M, 3.0)), {}, 3e-5),
+    "constant_measurement": (lambda: (_base()[0], np.full(M, 3.0)), dict(background="none"), 3e-5),
     "single_bright_pixel": (_single_pixel, {}, 3e-5),
     "saturated_pixels": (_saturated, {}, 3e-5),
     "hot_pixel_100x_brightest": (_hot_pixel, {}, 3e-5),
@@ -124,7 +124,7 @@ CASES = {
     "y_in_float32_denormal_range": (_scaled(1.0, 1e-40), {}, 3e-3),
     "identical_psf_planes": (_identical_planes, {}, 3e-5),
     "box_psf_with_spectral_zeros": (_box_psf, {}, 3e-5),
-    "delta_psf": (_delta_psf, dict(l1=1e-5, tv=1e-5), 3e-5),
+    "delta_psf": (_delta_psf, dict(l1=1e-5, tv=1e-5, background="none"), 3e-5),
     "one_plane": (lambda: (_base()[0][:1], _emitter_problem(_base()[0][:1])), {}, 3e-5),
     "many_planes_160": (_many_planes, dict(padded_shape=(32, 40)), 3e-5),
     "odd_and_prime_sizes": (_odd_prime, dict(padded_shape=None), 3e-5),
@@ -189,6 +189,17 @@ def test_weight_above_the_data_gives_zero(rt):
         _, _, rec = _solve("l1_weight_1e3", dt)
         assert np.abs(rec.volume).max() <= 1e-6 * scale
         assert rec.log[-1]["rel_change"] < 1.0
+
+
+def test_constant_measurement_is_all_background(rt):
+    """With the background in the model (the default), a constant frame is explained by b alone: b = y on
+    the sensor and no volume (haze is not reconstructed as volume); without it the volume takes it up."""
+    psf = _base()[0]
+    y = np.full(M, 3.0)
+    rec = cm2cl.reconstruct(y, psf, max_iter=150, padded_shape=(64, 80))
+    np.testing.assert_allclose(rec.background, 3.0, rtol=1e-3)
+    plain = cm2cl.reconstruct(y, psf, max_iter=150, padded_shape=(64, 80), background="none")
+    assert rec.volume.sum() < 1e-3 * plain.volume.sum()
 
 
 def test_delta_psf_returns_the_measurement(rt):

@@ -33,19 +33,26 @@ def command(args, params: ADMMParams) -> int:
     wp = working_psf(args, psf, pmeta, meas.shape, psf_off)
     pixels, names, weights = _pixels(args, meas, psf)
     meas, background = _remove_background(args, meas, mmeta)
+    off = _camera_offset(args, meas, off)
     y = prepare(meas, offset=off, bin_factor=args.bin, name=f"measurement '{args.measurement}'")
+    weights, camera = _camera_weights(args, y, weights)
     dt = np.dtype(args.dtype)
     planes, ny, nx = wp.h.shape   # the output is checked (writable, room, sidecars, no other run) and locked
     vol_bytes = planes * (2 * ny * 2 * nx if args.padded else ny * nx) * dt.itemsize
     outset = OutputSet(out, expected_bytes=vol_bytes, inputs=(args.measurement, args.psf), extras=extras(args))
     with outset:   # an OSError while writing becomes one line; nothing is left behind
         rec = _solve(args, y, wp, weights, params, dt)
-        rec.info.update(pixels={**pixels, "masked": names}, background=args.background, psf_fit=wp.note)
+        rec.info.update(pixels={**pixels, "masked": names}, background=args.background, psf_fit=wp.note,
+                        camera=camera)
+        px = mmeta.get("voxel_size_um") if mmeta.get("unit") == "um" else None
+        if background is None and rec.background is not None:   # the model's b, on the (binned) working grid
+            background, what = rec.background, "background of the model y = C H x + b (working grid)"
+            px = None if px is None else tuple(float(v) * args.bin for v in px)
+        else:
+            what = "background removed from the measurement"
         if background is not None and args.save_background:   # a member of the published unit
-            io.write_tiff(outset.staged("background"), background.astype(np.float32),
-                          voxel_size_um=mmeta.get("voxel_size_um") if mmeta.get("unit") == "um" else None,
-                          extra={"what": "background removed from the measurement", "method": args.background,
-                                 "measurement": str(args.measurement)})
+            io.write_tiff(outset.staged("background"), background.astype(np.float32), voxel_size_um=px,
+                          extra={"what": what, "method": args.background, "measurement": str(args.measurement)})
         vol = _write(args, outset, rec, dt, wp.scale)
     _report(out, outset, rec, wp.scale, vol)
     return 0
@@ -61,7 +68,13 @@ def check_options(args) -> None:
     check_output_file(out, 0, (args.measurement, args.psf), extras=extras(args))
     offsets(args)
     check_bin(args.bin)
-    if args.background:
+    if args.camera is not None:
+        from ..io.camera import parse_camera
+
+        cam = parse_camera(args.camera)
+        if cam not in (None, "auto") and cam.offset > 0 and args.offset != "none":
+            raise InputError("--camera: the dark level is given twice (offset= and --offset); give it once")
+    if args.background not in (None, "model", "none"):
         from ..io.background import check_background_spec
 
         check_background_spec(args.background)
@@ -104,12 +117,39 @@ def _pixels(args, meas, psf):
 
 def _remove_background(args, meas, mmeta):
     """(the measurement, the background removed or None) for --background."""
-    if not args.background:
+    if args.background in (None, "model", "none"):
         return meas, None
     from ..io.background import parse_background, remove_background
 
     px_um = (mmeta.get("voxel_size_um") or (None,))[-1] if mmeta.get("unit") == "um" else None
     return remove_background(meas, parse_background(args.background, px_um), args.device)
+
+
+def _camera_offset(args, meas, off):
+    """The dark level to subtract: --offset, or the camera's offset (checked against the frame)."""
+    from ..io.camera import check_camera, parse_camera
+
+    cam = parse_camera(args.camera)
+    if cam in (None, "auto"):
+        return off
+    check_camera(cam, meas)
+    return cam.offset if cam.offset > 0 else off
+
+
+def _camera_weights(args, y, weights):
+    """(the data term's weights, the camera's record) for --camera on the prepared frame ``y`` (dark level
+    removed, sum-binned: each binned pixel's variance is gain x its counts + bin^2 (gain read noise)^2)."""
+    from ..io.camera import Camera, estimate_camera, parse_camera, variance_weights
+
+    cam = parse_camera(args.camera)
+    if cam is None:
+        return weights, None
+    if cam == "auto":
+        cam = estimate_camera(y)
+    else:
+        cam = Camera(cam.gain, 0.0, cam.read_noise * args.bin, cam.source)
+    w = variance_weights(y, cam)
+    return (w if weights is None else w * weights), {**cam.as_dict(), "bin": args.bin}
 
 
 def _solve(args, y, wp, weights, params: ADMMParams, dt):

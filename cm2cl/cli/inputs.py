@@ -35,8 +35,13 @@ def devices_arg(text):
 
 
 def solver_params(args) -> ADMMParams:
-    """The parameters: --prior, then --preset, then the options given."""
-    return layered(args.prior, args.preset, **{p.name: getattr(args, p.name) for p in parameters() if p.flag})
+    """The parameters: --prior, then --preset, then the options given (--background 'opening:R' is the
+    paper's pre-step instead of the background in the model)."""
+    given = {p.name: getattr(args, p.name) for p in parameters() if p.flag}
+    bg = getattr(args, "background", None)
+    if bg is not None:
+        given["background"] = bg if bg in ("model", "none") else "none"
+    return layered(args.prior, args.preset, **given)
 
 
 def layout_options(args) -> dict:

@@ -37,6 +37,11 @@ def add_inputs(r) -> None:
     g.add_argument("--offset", default="none",
                    help="camera offset (dark level) of the measurement to subtract: 'none', 'auto' (mean of "
                         "pixels [5:15, 5:15]) or a number")
+    g.add_argument("--camera", default=None,
+                   help="the camera's noise model, for a data term that weighs each pixel by the inverse of its "
+                        "photon and read-noise variance: 'gain=G,read-noise=R' (ADU per photoelectron, electrons "
+                        "rms; ',offset=O' gives the dark level in ADU instead of --offset) or 'auto' (fitted to "
+                        "the frame's mean-variance relation); default: every pixel weighs the same")
     g.add_argument("--psf-offset", default="none",
                    help="offset of the PSF stack, separately (a calibration has its own dark level): 'none', "
                         "'auto' or a number")
@@ -46,10 +51,11 @@ def add_inputs(r) -> None:
                         "maximum, or --saturation), 'hot' (isolated outliers); they are always counted and reported")
     g.add_argument("--saturation", type=float, default=None,
                    help="saturation level of the measurement (default: the integer dtype's maximum)")
-    g.add_argument("--background", default=None,
-                   help="remove the slowly varying background before the solve (paper Fig. 5A): "
-                        "'opening:RADIUS_UM' or 'opening:RADIUSpx', a grey opening with a disk larger than the "
-                        "targets, on the device")
+    g.add_argument("--background", default="model",
+                   help="the slowly varying background: 'model' (default: y = C H x + b, b smooth and >= 0, "
+                        "estimated with the volume), 'none', or removed before the solve as in the paper (Fig. "
+                        "5A): 'opening:RADIUS_UM' or 'opening:RADIUSpx', a grey opening with a disk larger than "
+                        "the targets, on the device")
 
 
 def add_solver(r) -> None:
@@ -135,7 +141,8 @@ def add_output(r) -> None:
                    help="object-space voxel size in um of the PSF stack's grid (before --bin); overrides the "
                         "PSF's own; without it and without an object-space PSF the volume is in pixels")
     g.add_argument("--save-background", action="store_true",
-                   help="also write the removed background next to the output (OUT.background.ome.tif)")
+                   help="also write the background (the model's b, or the one removed) next to the output "
+                        "(OUT.background.ome.tif)")
     g.add_argument("--dry-run", action="store_true",
                    help="print the plan (grid, device and host memory, whether it fits) from the TIFF headers, "
                         "solve and write nothing")

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from .forward import centered_psf, crop, crop_offsets, embed
-from .terms import L1, TV, LeastSquares, sq
+from .terms import L1, TV, LeastSquares, LeastSquaresBackground, sq, support_extent
 
 
 def normalisation(psf, y, padded_shape):
@@ -59,7 +59,11 @@ def admm(y, psf, params=None, padded_shape=None, dtype=np.float64, workers=None,
                   callback)
     # each plane's l1 weight: ||h_i||^q / mean ||h_j||^q of the normalised stack (all ones for q = 0)
     hn = np.sqrt(np.sum((psf * s_h).reshape(nz, -1) ** 2, axis=1)) ** float(p.l1_plane_power)
-    data = LeastSquares(cty, mask, ys, wts, M, dt)
+    if p.background == "model":   # knots a quarter of the PSF support apart, within [8 px, the sensor]
+        spacing = p.background_scale_px or min(max(0.25 * max(support_extent(psf)), 8.0), max(M))
+        data = LeastSquaresBackground(cty, mask, ys, wts, M, dt, spacing)
+    else:
+        data = LeastSquares(cty, mask, ys, wts, M, dt)
     data.start(ctl.mu["v"])
     regs = (TV(x, p.tv_iters, p.tv_axial_weight, p.tv_isotropic), L1(x, (hn / hn.mean())[:, None, None]))
     weight = {"u": ctl.tv, "w": ctl.l1}
@@ -87,7 +91,8 @@ def admm(y, psf, params=None, padded_shape=None, dtype=np.float64, workers=None,
                      pz=tv.p[2])
     oy, ox = crop_offsets(M, P)
     vol = np.maximum(x, 0) * (s_h / s_y)
+    background = data.b / s_y if p.background == "model" else None
     return Reconstruction(volume_padded=vol, crop=(slice(oy, oy + M[0]), slice(ox, ox + M[1])),
-                          log=ctl.log, scaling={"psf_scale": s_h, "y_scale": s_y},
+                          log=ctl.log, scaling={"psf_scale": s_h, "y_scale": s_y}, background=background,
                           params=p.as_dict(), info={"device": "numpy", "dtype": dt.name, "padded_shape": P,
                                                     **ctl.summary()})

@@ -80,3 +80,69 @@ class TV:
         stats = dict(r2=sq(x - u_new), d2=sq(u_new - self.u), ax2=sq(x), z2=sq(u_new), dual2=sq(self.eta))
         self.u = u_new
         return stats, {"tv": tv_value(x, self.aw, self.iso)}
+
+
+def cubic_bspline(t):
+    """The uniform cubic B-spline kernel (support |t| < 2, integral 1)."""
+    a = np.abs(np.asarray(t, np.float64))
+    return np.where(a < 1, (4 - 6 * a**2 + 3 * a**3) / 6, np.where(a < 2, (2 - a) ** 3 / 6, 0.0))
+
+
+def background_basis(n_pixels: int, spacing: float) -> np.ndarray:
+    """(n_pixels, n): cubic B-splines centred at -h, 0, h, ..., (n_pixels - 1) + h, with h the largest
+    spacing <= ``spacing`` that divides the pixels' span."""
+    m = max(1, int(np.ceil((n_pixels - 1) / spacing)))
+    h = max(n_pixels - 1, 1) / m
+    centres = (np.arange(m + 3) - 1.0) * h
+    spacing = h
+    return cubic_bspline((np.arange(n_pixels)[:, None] - centres[None, :]) / spacing)
+
+
+def support_extent(psf, fraction=1 - 1e-6):
+    """The lateral extent (rows, columns) of the PSF stack holding ``fraction`` of its light."""
+    h = np.abs(np.asarray(psf, np.float64))
+    out = []
+    for axis in (2, 1):
+        prof = h.sum(axis=(0, axis))
+        c = np.cumsum(prof) / prof.sum()
+        lo = int(np.searchsorted(c, (1 - fraction) / 2, side="right"))
+        hi = min(int(np.searchsorted(c, 1 - (1 - fraction) / 2, side="left")), int(np.flatnonzero(prof)[-1]))
+        out.append(hi - max(min(lo, hi), int(np.flatnonzero(prof)[0])) + 1)
+    return tuple(out)
+
+
+class LeastSquaresBackground(LeastSquares):
+    """1/2 ||W^(1/2) (C H x + b - y)||^2 with b = B c, c >= 0, on v = Hx: the data step minimises jointly over
+    (v, c); c by non-negative least squares on the whole design matrix (the solver uses its normal
+    equations), v = (W (y - b) + mu a) / (W + mu) with a = Hx + xi / mu."""
+
+    def __init__(self, cty, mask, ys, wts, M, dt, spacing):
+        super().__init__(cty, mask, ys, wts, M, dt)
+        from .forward import crop_offsets
+
+        self.B = np.kron(background_basis(M[0], spacing), background_basis(M[1], spacing))
+        oy, ox = crop_offsets(M, cty.shape)
+        self.sensor = (slice(oy, oy + M[0]), slice(ox, ox + M[1]))
+        self.b = np.zeros(M)
+
+    def _fit(self, a_sensor, mu):
+        from scipy.optimize import nnls
+
+        q = np.sqrt((self.wts * mu / (self.wts + mu)).ravel())
+        c, _ = nnls(q[:, None] * self.B, q * (self.ys.astype(np.float64) - a_sensor).ravel(), maxiter=100 * self.B.shape[1])
+        self.b = (self.B @ c).reshape(self.M)
+        self.target = self.cty.astype(np.float64).copy()
+        self.target[self.sensor] -= self.b
+
+    def start(self, mu):
+        self._fit(np.zeros(self.M), mu)
+        self.v = (self.mask * self.target / (self.mask + mu)).astype(self.dt)
+
+    def update(self, hx, mu):
+        self._fit((hx + self.xi / mu)[self.sensor], mu)
+        v_new = ((self.mask * self.target + mu * hx + self.xi) / (self.mask + mu)).astype(self.dt)
+        self.xi += mu * (hx - v_new)
+        stats = dict(r2=sq(hx - v_new), d2=sq(v_new - self.v), ax2=sq(hx), z2=sq(v_new), dual2=sq(self.xi))
+        self.v = v_new
+        fit = crop(hx.astype(np.float64), self.M) + self.b - self.ys
+        return stats, {"data": 0.5 * float(np.sum(self.wts * fit ** 2))}

@@ -22,7 +22,7 @@ from ..device.volume import fill, scale
 from ..errors import DeviceError, InputError
 from . import xstep
 from .control import Control, ProblemScale
-from .forward import centered_psf, choose_padded_shape, crop_offsets, min_padded_shape
+from .forward import centered_psf, choose_padded_shape, crop_offsets, min_padded_shape, psf_support
 from .launch import Kernels, RowLayout, Slots
 from .memory import fft_scratch_per_plane, memory_estimate, plan_layout
 from .params import ADMMParams
@@ -89,7 +89,8 @@ class ADMMSolver:
             self.psf_prescale = 1.0 / np.sqrt(np.sum(np.abs(psf).reshape(psf.shape[0], -1).sum(axis=1) ** 2))
         psf = psf * self.psf_prescale
         self.p = params
-        self.terms = terms if terms is not None else default_terms()
+        self.terms = terms if terms is not None else default_terms(background=params.background,
+                                                                   spacing_px=params.background_scale_px)
         if not self.terms.fused and lean is True:
             raise InputError("lean: the lean layout keeps the default terms' fused state; these terms need the whole one")
         self.slots = Slots()
@@ -133,7 +134,7 @@ class ADMMSolver:
     def _lay_out(self, rts, max_memory, stream, max_slab_planes, overlap, lean) -> None:
         """The parts (planes over devices, :func:`plan_layout`), their kernels and row layouts."""
         P, rt = self.P, self.rt
-        counts = {"real_volumes": len(self.terms.volumes), "nslots": len(self.slots)}
+        counts = {"real_volumes": len(self.terms.volumes), "nslots": len(self.slots), "planes": len(self.terms.planes)}
         scratch = fft_scratch_per_plane(rt, P, self.dtype, self.backend)
         self.layout = plan_layout(self.nz, P, self.dtype, self.backend, rts, max_memory=max_memory,
                                   stream=stream, max_slab_planes=max_slab_planes, scratch_per_plane=scratch,
@@ -146,7 +147,8 @@ class ADMMSolver:
         oy, ox = self.offsets = crop_offsets(self.M, P)
         self.crop = (slice(oy, oy + self.M[0]), slice(ox, ox + self.M[1]))
         self.parts = [Part(lp.rt, lp.z0, lp.z1, P, spec_plane, self.dtype, self.cdtype, slab_planes=lp.slab_planes,
-                           streamed=lp.streamed, overlap=lp.overlap, lean=lp.lean, real=self.terms.volumes)
+                           streamed=lp.streamed, overlap=lp.overlap, lean=lp.lean, real=self.terms.volumes,
+                           planes=self.terms.planes)
                       for lp in self.layout]
         self.walk = Walk(self.parts)
         #: lean layout (the planner's choice, all parts alike): one slab of spectra per part
@@ -191,6 +193,8 @@ class ADMMSolver:
                 part.scale("hs", self.psf_scale)
                 scale(part.rt, part.planes["hn2"], self.psf_scale**2)
         psf_n = psf * self.psf_scale  # the normalised stack the solver sees (float64, host)
+        (y0, y1), (x0, x1) = psf_support(psf_n)
+        self.psf_support_px = (y1 - y0 + 1, x1 - x0 + 1)
         self.spectral_mean = float(np.sum(psf_n * psf_n))
         self.l1_plane_weights = plane_weights(psf_n, self.p.l1_plane_power)
         self.psf_scale *= self.psf_prescale  # the whole scale from the caller's PSF
@@ -354,10 +358,15 @@ class ADMMSolver:
         self._check_range(self.psf_scale / y_scale, float(vol.max()), float(vol.max()))
         for plane in vol:   # scaled in float64, rounded to the solve's dtype; in place, a plane at a time
             plane[...] = plane.astype(np.float64) * (self.psf_scale / y_scale)
+        bg = getattr(self.terms.data, "fit", None)
+        if bg is not None:
+            info_bg = {"model": "cubic B-splines >= 0", "knot_spacing_px": bg.spacing, "coefficients": list(bg.shape),
+                       "mean": float(bg.plane().mean() / y_scale)}
         layout = [{"device": part.rt.caps.name, "planes": [part.z0, part.z1], "streamed": part.streamed,
                    "lean": part.lean, "slab_planes": part.max_planes, "overlap": part.overlap} for part in self.parts]
         return Reconstruction(
             volume_padded=vol, crop=self.crop, log=ctl.log,
+            background=None if bg is None else bg.plane() / y_scale,
             scaling={"psf_scale": float(self.psf_scale), "y_scale": float(y_scale)},
             params=self.p.as_dict(),
             info={"device": self.rt.caps.name, "platform": self.rt.caps.platform, "dtype": self.dtype.name,
@@ -365,7 +374,8 @@ class ADMMSolver:
                   "slabs": sum(len(part.bounds) for part in self.parts), "layout": layout, **ctl.summary(),
                   "l1_plane_weights": [float(c) for c in self.l1_plane_weights],
                   "device_bytes": int(self.allocated_bytes), "host_bytes": int(self.host_bytes),
-                  "moved_bytes": int(self.moved_bytes)})
+                  "moved_bytes": int(self.moved_bytes),
+                  "background": {"model": "none"} if bg is None else info_bg})
 
 
 __all__ = ["ADMMSolver", "pixel_weights"]

@@ -8,7 +8,7 @@ from .. import validate
 from ..device.fft import resolve_backend
 from ..device.runtime import get_runtime
 from ..errors import InputError
-from .admm import ADMMSolver
+from .admm import ADMMSolver, pixel_weights
 from .params import check_keywords, with_parameters
 
 #: reconstruct()'s docstring; the solver parameters' entries are made from their declaration (ADMMParams)
@@ -54,6 +54,13 @@ _DOC = """Reconstruct a 3D volume from one CM2 measurement (paper Eq. 4) on an O
         Keep the planes resident with one slab of x spectra instead of a volume of them (7 real volumes
         and the PSF spectra per plane, for one more forward FFT per iteration): where the whole state
         does not fit ('auto'), always (True), or never (False). The iterates are the same.
+    camera : None, 'auto', dict or str, optional
+        The camera's noise model, for a data term that weighs each pixel by the inverse of its photon and
+        read-noise variance (:mod:`cm2cl.io.camera`): ``{'gain': ADU per photoelectron, 'offset': ADU,
+        'read_noise': electrons}`` or ``'gain=2,offset=100,read-noise=1.5'`` (the measurement is then the
+        raw frame: the offset is subtracted), or 'auto' (gain and read noise fitted to the frame's
+        mean-variance relation, offset 0: a frame whose dark level was removed). None (default): every pixel
+        weighs the same. Recorded in ``rec.info['camera']``.
     voxel_size_um : (dz, dy, dx) in um, optional
         Object-space voxel size, carried to ``rec.voxel_size_um``.
     depths_um : (nz,) in um, optional
@@ -98,7 +105,7 @@ def reconstruct(measurement, psf, *, dtype=np.float32, backend: str = "auto", de
                 max_slab_planes: int | None = None, devices=None, max_memory=None, stream="auto",
                 overlap="auto", lean="auto", voxel_size_um=None, depths_um=None,
                 weights=None, padding: str = "full", callback=None, callback_every: int = 1,
-                x0=None, **params) -> Reconstruction:
+                x0=None, camera=None, **params) -> Reconstruction:
     prm = check_keywords("reconstruct", params)
     psf = validate.psf_stack(validate.image_array(psf, "psf"), "psf")
     y = validate.real_array(validate.image_array(measurement, "measurement", ndims=(2,)), "measurement", ndims=(2,))
@@ -106,6 +113,7 @@ def reconstruct(measurement, psf, *, dtype=np.float32, backend: str = "auto", de
         raise InputError(f"measurement: shape {y.shape} does not match the PSF's sensor grid "
                          f"{psf.shape[1:]} (psf shape {psf.shape})")
     vs, d = _scale(voxel_size_um, depths_um, psf.shape[0])
+    y, weights, cam = _camera(y, weights, camera)
     pad_info = None
     if padding not in ("full", "support"):
         raise InputError(f"padding: expected 'full' or 'support', got {padding!r}")
@@ -121,7 +129,21 @@ def reconstruct(measurement, psf, *, dtype=np.float32, backend: str = "auto", de
     rec = solver.solve(y, callback=callback, callback_every=callback_every, weights=weights, x0=x0)
     rec.voxel_size_um, rec.depths_um = vs, d
     rec.info["padding"] = pad_info or {"padded_shape": list(solver.P), "support_px": None}
+    rec.info["camera"] = cam
     return rec
+
+
+def _camera(y, weights, camera):
+    """(the measurement less the camera's offset, the data term's weights, the camera's record) for
+    ``camera`` (:func:`cm2cl.io.camera.camera_weights`), the given pixel weights (masks) kept."""
+    if camera is None:
+        return y, weights, None
+    from ..io.camera import camera_weights
+
+    y, w, cam = camera_weights(y, camera)
+    if w is not None and weights is not None:
+        w = w * pixel_weights(weights, y.shape)
+    return y, w, cam
 
 
 def _scale(voxel_size_um, depths_um, nz: int):

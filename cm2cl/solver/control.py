@@ -168,11 +168,12 @@ class Control:
         return (_ratio(r, max(sq(st.ax2), sq(st.z2), floor)),
                 _ratio(s, max(sq(st.dual2), mu * max(sq(st.z2), floor))))
 
-    def update(self, it, *, dx2: float, x2: float, splits: dict, objective: dict) -> bool:
+    def update(self, it, *, dx2: float, x2: float, splits: dict, objective: dict, changes=None) -> bool:
         """Record iteration `it` from ||x - x_old||^2, ||x||^2, each split's :class:`SplitStats` and the
         objective's parts (unweighted), adapt the penalties, and return True when the run should stop.
         Dual residuals are mu ||z - z_old|| in the space of each split variable z (for v = Hx this bounds
-        mu_v ||H^T (v - v_old)|| since ||H|| = 1 after normalisation)."""
+        mu_v ||H^T (v - v_old)|| since ||H|| = 1 after normalisation). ``changes``: (||z - z_old||^2,
+        ||z||^2) of further variables (a background), whose relative change must also fall below tol_change."""
         p = self.p
         sq = np.sqrt
         res = {n: (sq(st.r2), self.mu[n] * sq(st.d2)) for n, st in splits.items()}
@@ -189,6 +190,8 @@ class Control:
         for n, (r, s) in res.items():
             row[f"r_{n}"], row[f"s_{n}"] = r, s
         row.update({f"mu_{n}": mu for n, mu in self.mu.items()}, seconds=time.perf_counter() - self.t0)
+        for n, (d2, z2) in (changes or {}).items():
+            row[f"rel_change_{n}"] = _ratio(sq(d2), max(sq(z2), floor))
         row = {"iter": int(it), **{k: float(v) for k, v in row.items()}}
         self.log.append(row)
         if self.callback is not None and (it % self.every == 0 or it == p.max_iter):
@@ -196,7 +199,8 @@ class Control:
         for n, (r, s) in res.items():
             if self.active[n]:
                 self.mu[n] = self._adapt(it, self.mu[n], self.mu0[n], r, s)
-        ok = row["primal_rel"] <= p.tol and row["dual_rel"] <= p.tol and row["rel_change"] <= p.tol_change
+        ok = (row["primal_rel"] <= p.tol and row["dual_rel"] <= p.tol and row["rel_change"] <= p.tol_change
+              and all(row[f"rel_change_{n}"] <= p.tol_change for n in (changes or {})))
         self.calm = self.calm + 1 if ok else 0
         if self.calm >= p.patience:
             self.stop, self.converged = "converged", True

@@ -33,6 +33,8 @@ LEAN_SLAB_PLANES = 2
 #: s, u, px, py, pz; w, rho and eta derived: cm2cl.solver.terms.fused); other term sets give theirs
 REAL_VOLUMES = 7
 DEFAULT_SLOTS = 18
+#: padded planes of the default data term's own (the background's target, cm2cl.solver.terms.background)
+DEFAULT_PLANES = 1
 
 
 def fft_scratch_per_plane(rt, padded_shape, dtype, backend) -> int:
@@ -43,14 +45,15 @@ def fft_scratch_per_plane(rt, padded_shape, dtype, backend) -> int:
 
 
 def memory_estimate(nz, padded_shape, dtype, backend, scratch_per_plane=0, lean_slab=None,
-                    real_volumes=REAL_VOLUMES, nslots=DEFAULT_SLOTS) -> dict:
+                    real_volumes=REAL_VOLUMES, nslots=DEFAULT_SLOTS, planes=DEFAULT_PLANES) -> dict:
     """Bytes the solver allocates on one device for ``nz`` resident planes: ``per_plane`` for each depth
     plane, ``fixed`` for the plane buffers; ``scratch_per_plane`` is the FFT library's scratch for one
     plane (:func:`fft_scratch_per_plane`; the one-plane transforms need it once more). ``lean_slab``:
     the lean layout with slabs of that many planes (cm2cl.solver.parts.LEAN_SCRATCH), whose x spectra
     are one slab, a fixed cost, and whose planes hold the real volumes and the PSF spectra only.
-    ``real_volumes`` and ``nslots``: the real volumes and the reduction slots of the solve's terms
-    (cm2cl.solver.terms; the defaults: the default set's)."""
+    ``real_volumes``, ``nslots`` and ``planes``: the real volumes, the reduction slots and the padded
+    planes of their own of the solve's terms (cm2cl.solver.terms; the defaults: the default set's with
+    the background in the data term)."""
     py, px = padded_shape
     item = np.dtype(dtype).itemsize
     spec_plane = int(np.prod(spectrum_shape((py, px), backend))) * 2 * item
@@ -62,7 +65,7 @@ def memory_estimate(nz, padded_shape, dtype, backend, scratch_per_plane=0, lean_
     spectra = 1 if lean_slab else 2
     per_plane = int(real_volumes) * real_plane + spectra * spec_plane + partials + int(scratch_per_plane)
     # planes: v, xi, hx, cty, cw, r and two halos (real); R, S, comp (complex); hn2 (real, spectrum grid)
-    fixed = 8 * real_plane + 3 * spec_plane + spec_plane // 2 + 1024 + int(scratch_per_plane)
+    fixed = (8 + int(planes)) * real_plane + 3 * spec_plane + spec_plane // 2 + 1024 + int(scratch_per_plane)
     if lean_slab:   # one slab of x spectra, and the plane r_next (real)
         fixed += int(lean_slab) * spec_plane + real_plane
     return {"per_plane": per_plane, "fixed": fixed, "total": nz * per_plane + fixed,
@@ -154,7 +157,7 @@ class PartPlan:
 
 def plan_layout(nz, padded_shape, dtype, backend, runtimes, *, max_memory=None, stream="auto",
                 max_slab_planes=None, scratch_per_plane=0, overlap="auto", lean="auto",
-                real_volumes=REAL_VOLUMES, nslots=DEFAULT_SLOTS) -> list[PartPlan]:
+                real_volumes=REAL_VOLUMES, nslots=DEFAULT_SLOTS, planes=DEFAULT_PLANES) -> list[PartPlan]:
     """Spread ``nz`` planes over ``runtimes`` (contiguous runs, in proportion to each device's budget):
     resident where every run fits its device; else resident and lean (``lean`` 'auto' or True: one slab
     of LEAN_SLAB_PLANES planes of x spectra instead of a volume of them, for one more forward FFT per
@@ -175,7 +178,7 @@ def plan_layout(nz, padded_shape, dtype, backend, runtimes, *, max_memory=None, 
     if lean is True and stream is True:
         raise InputError("lean and stream: the lean layout keeps every plane on the device, streaming keeps "
                          "them in host memory; ask for one of them")
-    terms = {"real_volumes": real_volumes, "nslots": nslots}
+    terms = {"real_volumes": real_volumes, "nslots": nslots, "planes": planes}
     est = memory_estimate(1, padded_shape, dtype, backend, scratch_per_plane, **terms)
     per, fixed, vols = est["per_plane"], est["fixed"], est["volumes_per_plane"]
     budgets = [device_budget(rt, max_memory) for rt in runtimes]

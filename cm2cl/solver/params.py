@@ -128,6 +128,14 @@ class ADMMParams:
     normalize: bool = _param(
         True, {"type": "bool"}, "Scale y to max 1 and the PSFs to ||H|| = 1 (in float64 on the host; the volume "
         "is scaled back), so that weights and penalties mean the same on every dataset.")
+    background: str = _param(
+        "model", {"type": "str", "choices": ("model", "none")},
+        "'model': the data term is y = C H x + b with b a smooth, non-negative 2D background estimated jointly "
+        "with the volume (cubic B-splines; rec.background), so that haze is not reconstructed as volume; "
+        "'none': y = C H x.")
+    background_scale_px: float | None = _param(
+        None, _POS, "Knot spacing of the background's B-splines in sensor pixels.", unit="px",
+        auto="a quarter of the PSF stack's lateral support, at least 8 px")
 
     def __post_init__(self):
         # the checked values replace the given ones: 2.0 iterations become 2, numpy scalars plain numbers

@@ -53,7 +53,7 @@ class Part:
     device buffers for each step."""
 
     def __init__(self, rt, z0, z1, padded_shape, spec_plane, dtype, cdtype, *, slab_planes=None,
-                 streamed=False, overlap=False, pinned=None, lean=False, real=REAL):
+                 streamed=False, overlap=False, pinned=None, lean=False, real=REAL, planes=()):
         self.rt, self.z0, self.z1 = rt, int(z0), int(z1)
         self.P, self.spec_plane = tuple(padded_shape), tuple(spec_plane)
         self.dtype, self.cdtype = np.dtype(dtype), np.dtype(cdtype)
@@ -86,7 +86,7 @@ class Part:
                         for n in (LEAN_SCRATCH if self.lean else ())}
         plane = lambda shape, dt: Volume(rt, [(0, 1)], shape, dt).slabs[0]  # noqa: E731
         self.planes = {n: plane(self.P, self.dtype) for n in ("v", "xi", "hx", "cty", "cw", "r",
-                                                              "halo_prev", "halo_next")}
+                                                              "halo_prev", "halo_next") + tuple(planes)}
         self.planes |= {n: plane(self.spec_plane, self.cdtype) for n in ("R", "S", "comp")}
         self.planes["hn2"] = plane(self.spec_plane, self.dtype)
         if self.lean:   # the first plane of the TV residual of the slab after the one being visited

@@ -35,6 +35,9 @@ class Reconstruction:
     voxel_size_um: tuple | None = None
     #: depth of each plane in um, when known
     depths_um: np.ndarray | None = None
+    #: the background b of the model y = C H x + b on the sensor (My, Mx), in the measurement's units, when
+    #: the data term has one (``background='model'``)
+    background: np.ndarray | None = None
 
     @property
     def volume(self) -> np.ndarray:

@@ -4,6 +4,7 @@
 
 from __future__ import annotations
 
+from .background import LeastSquaresBackground
 from .base import Term
 from .data import LeastSquares
 from .fused import DefaultSet
@@ -28,6 +29,8 @@ class GenericSet:
         self.volumes = tuple(dict.fromkeys(("x", "g") + sum((t.volumes for t in self.terms), ())))
         self.sums = (("x_change", ("dx2", "x2")),) + tuple((t.split, t.sums) for t in self.terms)
         self.splits = tuple((t.split, t.kind) for t in self.terms)
+        self.kernels = tuple(dict.fromkeys(GenericSet.kernels + sum((t.kernels for t in self.terms), ())))
+        self.planes = tuple(dict.fromkeys(sum((t.planes for t in self.terms), ())))
         self.start_volumes = ("x",) + tuple(t.volumes[0] for t in self.regs)
 
     def setup(self, s) -> None:
@@ -70,17 +73,30 @@ class GenericSet:
         objective = {}
         for t in self.terms:
             objective.update(t.objective(v))
+        changes = {}
+        for t in self.terms:
+            changes.update(t.changes())
         return {"dx2": v["dx2"], "x2": v["x2"], "splits": {t.split: t.stats(v) for t in self.terms},
-                "objective": objective}
+                "objective": objective, "changes": changes}
 
     def derived(self, s, name: str):
         return None
 
 
-def default_terms(fused: bool = True):
-    """The default objective {least squares, TV, l1 + non-negativity}: the fused set, or the same terms
-    as a generic set."""
-    return DefaultSet() if fused else GenericSet(LeastSquares(), (TV(), L1()))
+def data_term(background: str = "none", spacing_px=None) -> Term:
+    """The data term: least squares, with a background in the model for ``background='model'``."""
+    if background == "model":
+        return LeastSquaresBackground(spacing_px)
+    if background == "none":
+        return LeastSquares()
+    raise ValueError(f"background: expected 'model' or 'none', got {background!r}")
 
 
-__all__ = ["Term", "LeastSquares", "L1", "TV", "GenericSet", "DefaultSet", "default_terms", "plane_weights"]
+def default_terms(fused: bool = True, background: str = "none", spacing_px=None):
+    """The default objective {data, TV, l1 + non-negativity} with the data term of :func:`data_term`: the
+    fused set, or the same terms as a generic set."""
+    data = data_term(background, spacing_px)
+    return DefaultSet(data) if fused else GenericSet(data, (TV(), L1()))
+
+
+__all__ = ["Term", "LeastSquares", "LeastSquaresBackground", "data_term", "L1", "TV", "GenericSet", "DefaultSet", "default_terms", "plane_weights"]

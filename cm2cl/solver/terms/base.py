@@ -23,6 +23,9 @@ class Term:
     sums: tuple = ()
     #: the volumes its share of the x step's right-hand side reads
     rhs_reads: tuple = ()
+    #: (file, kernel) of the kernels it launches, and padded planes of its own (on part 0)
+    kernels: tuple = ()
+    planes: tuple = ()
 
     def setup(self, s) -> None:
         """Per-part data it needs on the devices (``s``: the solver), once per solver."""
@@ -52,6 +55,11 @@ class Term:
 
     def objective(self, v: dict) -> dict:
         """Its parts of the objective (unweighted), by name."""
+        return {}
+
+    def changes(self) -> dict:
+        """(||z - z_old||^2, ||z||^2) of variables it keeps besides its split (the background's b), by name:
+        the stopping rule also waits for their relative change."""
         return {}
 
     def derived(self, s, name: str):

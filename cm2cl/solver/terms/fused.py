@@ -43,8 +43,10 @@ class DefaultSet:
     kernels = (("splits.cl", "update_w"), ("splits.cl", "split_state"), ("tv.cl", "tv_finish"),
                ("tv.cl", "tv_eta"), ("xstep.cl", "rhs_volume"))
 
-    def __init__(self):
-        self.data = LeastSquares()
+    def __init__(self, data=None):
+        self.data = data if data is not None else LeastSquares()
+        self.kernels = DefaultSet.kernels + tuple(k for k in self.data.kernels if k not in DefaultSet.kernels)
+        self.planes = self.data.planes
         #: (l1, mu): the l1 weight and penalty s was made with; (0, 1) for a state set directly (s = w)
         self.l1_split = (0.0, 1.0)
         #: the TV weight the dual p belongs to: eta = tv_split div p
@@ -56,6 +58,7 @@ class DefaultSet:
 
     def setup(self, s) -> None:
         self.weights = PlaneWeights(s.parts, s.l1_plane_weights, s.dtype)
+        self.data.setup(s)
 
     def start(self, s, ctl) -> None:
         self.data.start(s, ctl)
@@ -150,7 +153,7 @@ class DefaultSet:
         return {"dx2": v["dx2"], "x2": v["x2"],
                 "splits": {"v": self.data.stats(v), "u": SplitStats(v["ru2"], v["su2"], v["x2"], v["u2"], v["eta2"]),
                            "w": SplitStats(v["rw2"], v["sw2"], v["x2"], v["w2"], v["rho2"])},
-                "objective": {**self.data.objective(v), "l1": v["l1"], "tv": v["tv"]}}
+                "objective": {**self.data.objective(v), "l1": v["l1"], "tv": v["tv"]}, "changes": self.data.changes()}
 
     # ---- state readback ---------------------------------------------------------------------------
     def derived(self, s, name: str):
