@@ -120,3 +120,36 @@ __kernel void tv_update(__global real_t *u, __global real_t *eta, __global const
     const real_t sums[5] = {lanes_sum(a0), lanes_sum(a1), lanes_sum(a2), lanes_sum(a3), lanes_sum(a4)};
     add_partials(partials, pstride, g, slot0, sums, 5);
 }
+
+/* l1_update with a weight per voxel as well: c = l1 l1w[z] lw[i] (reweighted l1, cm2cl/solver/terms/l1.py). */
+__kernel void l1_update_voxel(__global const real_t *x, __global real_t *w, __global real_t *rho,
+                              const real_t l1, __global const real_t *l1w, __global const real_t *lw,
+                              const real_t mu, const int planes, const int ny, const int nx, const int rows,
+                              __global real_t *partials, const int pstride, const int slot0) {
+    int xb0, xb1, y0, y1;
+    size_t g;
+    if (!row_item(nx, ny, rows, &xb0, &xb1, &y0, &y1, &g)) return;
+    realv a0 = 0, a1 = 0, a2 = 0, a3 = 0, a4 = 0;
+    for (int y = y0; y < y1; y++)
+        for (int z = 0; z < planes; z++) {
+            const real_t pw = l1w[z];
+            for (int xb = xb0; xb < xb1; xb++) {
+                const int x0 = xb * VW, cnt = nx - x0;
+                const size_t i = slab_index(z, y, x0, ny, nx);
+                const realv xi = load_row(x, i, cnt), wo = load_row(w, i, cnt), ro = load_row(rho, i, cnt);
+                const realv wt = pw * load_row(lw, i, cnt), c = l1 * wt;
+                const realv wn = fmax(xi + ro / mu - c / mu, (real_t)0);
+                const realv rn = ro + mu * (xi - wn);
+                const realv dw = wn - wo, pr = xi - wn;
+                store_row(wn, w, i, cnt);
+                store_row(rn, rho, i, cnt);
+                a0 += lanes_below(wt * fabs(xi), cnt);
+                a1 += lanes_below(pr * pr, cnt);
+                a2 += lanes_below(dw * dw, cnt);
+                a3 += lanes_below(wn * wn, cnt);
+                a4 += lanes_below(rn * rn, cnt);
+            }
+        }
+    const real_t sums[5] = {lanes_sum(a0), lanes_sum(a1), lanes_sum(a2), lanes_sum(a3), lanes_sum(a4)};
+    add_partials(partials, pstride, g, slot0, sums, 5);
+}

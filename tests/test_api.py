@@ -20,7 +20,7 @@ def test_signature_shows_the_solver_parameters():
         assert name in sig.parameters, name
         assert sig.parameters[name].kind == inspect.Parameter.KEYWORD_ONLY
     assert not any(p.kind == inspect.Parameter.VAR_KEYWORD for p in sig.parameters.values())
-    assert sig.parameters["max_iter"].default == 200 and sig.parameters["tv_iters"].default == 2
+    assert sig.parameters["max_iter"].default == 1000 and sig.parameters["tv_iters"].default == 2
     doc = cm2cl.reconstruct.__doc__
     for section in ("Parameters\n    ----------", "Returns\n    -------", "Examples\n    --------"):
         assert section in doc
@@ -150,7 +150,7 @@ def test_keywords_are_the_declared_parameters_with_their_defaults():
     assert sorted(sig.parameters) == sorted([
         "adapt_max_step", "adapt_ratio", "adapt_until", "background", "camera", "background_scale_px", "backend", "balance_factor", "balance_ratio", "callback",
         "callback_every", "depths_um", "device", "devices", "dtype", "l1", "l1_noise_ratio", "l1_plane_power",
-        "lean", "max_iter", "max_memory", "max_slab_planes", "measurement", "mu_range", "mu_u", "mu_v", "mu_w",
+        "l1_reweight", "l1_reweight_eps", "lean", "max_iter", "max_memory", "max_slab_planes", "measurement", "mu_range", "mu_u", "mu_v", "mu_w",
         "normalize", "overlap", "padded_shape", "padding", "patience", "penalty", "psf", "stream", "tol",
         "tol_change", "tv", "tv_axial_weight", "tv_isotropic", "tv_iters", "tv_noise_ratio", "voxel_size_um",
         "weights", "x0"])
@@ -168,6 +168,6 @@ def test_presets_and_priors_are_parameters():
     assert PRESET_PARAMS["best"] == ADMMParams(**PRESETS["best"]) and PRESET_PARAMS["balanced"] == ADMMParams()
     p = layered(prior="points", preset="fast", tol=1e-5, l1=None)
     assert p.tv_noise_ratio == 0.0 and p.max_iter == 100 and p.tol == 1e-5 and p.l1 is None
-    assert layered() == ADMMParams() and set(PRIORS) == {"default", "points", "points-weighted"}
+    assert layered() == ADMMParams() and set(PRIORS) == {"default", "points", "points-weighted", "extended"}
     with pytest.raises(InputError, match="preset: unknown 'quick'"):
         layered(preset="quick")

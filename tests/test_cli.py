@@ -259,7 +259,7 @@ def test_help_is_grouped_by_what_a_user_does_with_examples(capsys):
     assert {p.flag for p in flagged} >= {"--l1", "--tv", "--max-iter", "--tol", "--anisotropic", "--penalty"}
     for p in flagged:
         assert p.flag in solver, p.flag
-    assert "Iteration cap (default: 200)" in solver and "(default: adaptive)" in solver
+    assert "Iteration cap (default: 1000)" in solver and "(default: adaptive)" in solver
     assert text.count("cm2cl reconstruct ") >= 4      # usage and the examples
 
 
@@ -319,6 +319,6 @@ def test_dry_run_counts_the_presets_iterations(rt, tmp_path, capsys):
     meas, psf = _files(tmp_path)
     argv = ["reconstruct", str(meas), "--psf", str(psf), "-o", str(tmp_path / "v.ome.tif"), "--dry-run"]
     assert main(argv + ["--preset", "best"]) == 0
-    assert "for 1000 iterations" in capsys.readouterr().out
+    assert "for 3000 iterations" in capsys.readouterr().out
     assert main(argv + ["--preset", "best", "--max-iter", "7"]) == 0
     assert "for 7 iterations" in capsys.readouterr().out

@@ -44,7 +44,7 @@ def test_default_weights_follow_the_back_projected_noise():
     """Weights scale with sigma ||h_i|| (the noise of h_i^T y), ||h_i|| the RMS plane norm: a PSF spread
     over 4x the pixels (||h_i||^2 / 4) or a stack of 4x the planes sharing the same total spectral power
     halves them."""
-    p = ADMMParams()
+    p = ADMMParams(l1_noise_ratio=30.0, tv_noise_ratio=30.0)
     base = ProblemScale(noise_sigma=1e-3, spectral_mean=1e-2, planes=4)
     assert base.noise_x == pytest.approx(1e-3 * np.sqrt(1e-2 / 4))
     assert base.weights(p) == pytest.approx((30 * base.noise_x,) * 2)
@@ -138,7 +138,7 @@ def _gap_to_long_run(rt, psf, y, budget):
     assert rec.info["stop"] == "converged" and rec.info["converged"], rec.info
     assert rec.iterations < budget
     # the same problem (same weights) solved long, in float64 where the device has it
-    long = cm2cl.reconstruct(y, psf, dtype=np.float64 if rt.caps.fp64 else np.float32, max_iter=1000,
+    long = cm2cl.reconstruct(y, psf, dtype=np.float64 if rt.caps.fp64 else np.float32, max_iter=4000,
                              tol=0, l1=rec.info["l1"], tv=rec.info["tv"])
     o = long.history["objective"]
     assert abs(o[-1] / o[-100] - 1) < 1e-4            # the long run has settled (far below the 2% asked)
@@ -147,21 +147,22 @@ def _gap_to_long_run(rt, psf, y, budget):
 
 @pytest.mark.skipif(not datasets.available("diffusercam-2d"), reason="../shared/data/diffusercam-2d not present")
 def test_real_2d_data_default_run_converges_near_the_optimum(rt):
-    """DiffuserCam 2D binned 8x (150 x 200): the default run stops by the rule within 200 iterations at
-    an objective within 2% of a 1000-iteration float64 run of the same problem (seen: 82 iterations,
-    0.9%)."""
+    """DiffuserCam 2D binned 8x (150 x 200): the default run stops by the rule within the default 500
+    iterations at an objective within 2% of a 1000-iteration float64 run of the same problem (seen without
+    the background in the model: 82 iterations, 0.9%; with it, the default: ~290 iterations; the smooth
+    part the background and the volume share converges slowly)."""
     psf, y = datasets.diffusercam_2d(8)
-    gap = _gap_to_long_run(rt, psf, y, 200)
+    gap = _gap_to_long_run(rt, psf, y, 1000)
     assert -1e-4 < gap < 0.02
 
 
 @pytest.mark.skipif(not datasets.available("diffusercam-3d"), reason="../shared/data/diffusercam-3d not present")
 def test_real_3d_crop_default_run_converges_near_the_optimum(rt):
     """DiffuserCam 3D binned 4x (67 x 80), every 4th of the 44 planes: the default run stops by the
-    rule within 300 iterations, within 2% of a 1000-iteration float64 run (seen on all 44 planes:
-    197 iterations, 0.36%)."""
+    rule within the default 500 iterations, within 2% of a 1000-iteration float64 run (seen without the
+    background, all 44 planes: 197 iterations, 0.36%; with it, 11 planes: ~320 iterations)."""
     psf, y = datasets.diffusercam_3d(4, planes=range(0, 44, 4))
-    gap = _gap_to_long_run(rt, psf, y, 300)
+    gap = _gap_to_long_run(rt, psf, y, 1000)
     assert -1e-4 < gap < 0.02
 
 
@@ -177,3 +178,21 @@ def test_float32_solves_any_finite_input_scale(rt, s_psf, s_y):
     v = rec.volume * (s_psf / s_y)
     assert np.all(np.isfinite(rec.volume))
     assert np.linalg.norm(v - base.volume) <= 1e-5 * np.linalg.norm(base.volume)
+
+
+def test_default_l1_is_the_universal_threshold_per_plane(rt):
+    """l1 = sqrt(2 ln N) x noise_x, N the voxels of the padded volume (device and twin alike), each
+    plane's weight ~ ||h_i|| (its back-projected noise); the rule and its inputs are recorded."""
+    psf, _, y = bead_problem(3)
+    y = y + 0.01 * np.random.default_rng(2).standard_normal(y.shape)
+    rec = cm2cl.reconstruct(y, psf, max_iter=3, padded_shape=(64, 80))
+    n = psf.shape[0] * 64 * 80
+    assert rec.info["l1"] == pytest.approx(np.sqrt(2 * np.log(n)) * rec.info["noise_x"], rel=1e-12)
+    assert rec.info["tv"] == 0.0
+    rule = rec.info["l1_rule"]
+    assert rule["voxels"] == n and rule["rule"].startswith("universal") and rule["ratio"] == pytest.approx(np.sqrt(2 * np.log(n)))
+    norms = np.sqrt((psf.reshape(psf.shape[0], -1) ** 2).sum(axis=1))
+    np.testing.assert_allclose(rec.info["l1_plane_weights"], norms / norms.mean(), rtol=1e-9)
+    twin = ref.admm(y, psf, padded_shape=(64, 80), max_iter=3)
+    assert twin.info["l1"] == pytest.approx(rec.info["l1"], rel=1e-9)
+    assert cm2cl.reconstruct(y, psf, max_iter=1, padded_shape=(64, 80), l1_noise_ratio=30.0).info["l1_rule"]["rule"] == "noise ratio"

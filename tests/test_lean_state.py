@@ -121,7 +121,7 @@ def test_lean_parts_launch_the_kernels_without_scratch_once_over_all_planes(rt, 
     scratch, run per slab; the iterates are those of the one-slab solve."""
     psf, _, y = bead_problem(3)
     nz = psf.shape[0]
-    prm = ADMMParams(max_iter=4, tol=0, tv_axial_weight=0.5)
+    prm = ADMMParams(max_iter=4, tol=0, tv_axial_weight=0.5, tv_noise_ratio=30.0)
     whole = ADMMSolver(psf, prm, backend="cl", padded_shape=P).solve(y)
     s = ADMMSolver(psf, prm, backend="cl", padded_shape=P, lean=True, max_slab_planes=1)
     assert len(s.parts[0].bounds) == nz > 1

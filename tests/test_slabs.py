@@ -32,7 +32,9 @@ def problem(nz=7, dtype=np.float32):
     rng = np.random.default_rng(5)
     y = y + 0.01 * y.max() * rng.standard_normal(y.shape)
     # TV on with an axial weight, so the halo planes across slab and device borders matter
-    return psf.astype(dtype), y.astype(dtype), dict(max_iter=25, tol=0, padded_shape=(64, 80), tv_axial_weight=0.7)
+    # (the former default weights, 30 x noise for both: the penalties then change within the 25 iterations)
+    return psf.astype(dtype), y.astype(dtype), dict(max_iter=25, tol=0, padded_shape=(64, 80), tv_axial_weight=0.7,
+                                                    tv_noise_ratio=30.0, l1_noise_ratio=30.0, l1_plane_power=0.0)
 
 
 def close(a, b, dtype):

@@ -101,7 +101,7 @@ def configs(tiny: bool) -> list[tuple[str, str, dict]]:
 def long_run(case) -> float:
     """Objective of a long float64 run of the default problem (the default weights of this case)."""
     d = cm2cl.reconstruct(case["y"], case["psf"], max_iter=5)
-    rec = cm2cl.reconstruct(case["y"], case["psf"], dtype=np.float64, max_iter=1500, tol=1e-6, tol_change=1e-6,
+    rec = cm2cl.reconstruct(case["y"], case["psf"], dtype=np.float64, max_iter=5000, tol=1e-6, tol_change=1e-6,
                             l1=d.info["l1"], tv=d.info["tv"])
     return float(rec.log[-1]["objective"]), d.info["l1"], d.info["tv"]
 

@@ -61,10 +61,10 @@ def add_inputs(r) -> None:
 def add_solver(r) -> None:
     g = r.add_argument_group("solver")
     g.add_argument("--prior", choices=list(PRIORS), default="default",
-                   help="what the sample looks like: 'points' (beads, sparse cells): TV off, which spreads points "
-                        "into plateaus where the PSF blurs them; 'points-weighted': TV off and each plane's l1 "
-                        "weight ~ ||h_i||^2, which keeps emitters in planes whose PSF spreads their light "
-                        "(docs/paper_scenes.md); 'default': l1 and TV for extended structure. --l1/--tv win")
+                   help="what the sample looks like: 'default' (l1 at the universal threshold of the noise, per "
+                        "plane, TV off: best for beads and fibres alike on docs/quality.md's suite); 'points' (the "
+                        "same); 'points-weighted': each plane's l1 weight ~ ||h_i||^2; 'extended': TV at 5 x the "
+                        "noise level too, for smooth extended structure. --l1/--tv win")
     tuned = sorted({k for o in PRESETS.values() for k in o})
     g.add_argument("--preset", choices=list(PRESETS), default=None,
                    help="accuracy against time, measured in docs/accuracy_vs_time.md: " + "; ".join(

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from .forward import centered_psf, crop, crop_offsets, embed
-from .terms import L1, TV, LeastSquares, LeastSquaresBackground, sq, support_extent
+from .terms import L1, TV, LeastSquares, LeastSquaresBackground, ReweightedL1, sq, support_extent
 
 
 def normalisation(psf, y, padded_shape):
@@ -55,7 +55,7 @@ def admm(y, psf, params=None, padded_shape=None, dtype=np.float64, workers=None,
     x = np.zeros((nz,) + P, dt)
     if x0 is not None:
         x = (np.maximum(np.asarray(x0, np.float64), 0) * (s_y / s_h)).astype(dt)
-    ctl = Control(p, ProblemScale.of(np.where(wts > 0, y * s_y, 0.0), float(np.sum((psf * s_h) ** 2)), nz),
+    ctl = Control(p, ProblemScale.of(np.where(wts > 0, y * s_y, 0.0), float(np.sum((psf * s_h) ** 2)), nz, nz * P[0] * P[1]),
                   callback)
     # each plane's l1 weight: ||h_i||^q / mean ||h_j||^q of the normalised stack (all ones for q = 0)
     hn = np.sqrt(np.sum((psf * s_h).reshape(nz, -1) ** 2, axis=1)) ** float(p.l1_plane_power)
@@ -65,7 +65,9 @@ def admm(y, psf, params=None, padded_shape=None, dtype=np.float64, workers=None,
     else:
         data = LeastSquares(cty, mask, ys, wts, M, dt)
     data.start(ctl.mu["v"])
-    regs = (TV(x, p.tv_iters, p.tv_axial_weight, p.tv_isotropic), L1(x, (hn / hn.mean())[:, None, None]))
+    lw = (hn / hn.mean())[:, None, None]
+    l1 = ReweightedL1(x, lw, p.l1_reweight, p.l1_reweight_eps) if p.l1_reweight else L1(x, lw)
+    regs = (TV(x, p.tv_iters, p.tv_axial_weight, p.tv_isotropic), l1)
     weight = {"u": ctl.tv, "w": ctl.l1}
     for it in range(1, p.max_iter + 1):
         mu = dict(ctl.mu)
@@ -84,8 +86,10 @@ def admm(y, psf, params=None, padded_shape=None, dtype=np.float64, workers=None,
             splits[t.split] = SplitStats(**st)
             objective.update(obj)
         if ctl.update(it, dx2=dx2, x2=sq(x), splits=splits, objective=objective):
-            break
-    tv, l1 = regs
+            if not (p.l1_reweight and l1.next_round(x)):
+                break
+            ctl.converged, ctl.calm, ctl.stop = False, 0, "max_iter"   # another round of l1 weights
+    tv = regs[0]
     if state is not None:
         state.update(x=x, u=tv.u, w=l1.w, v=data.v, rho=l1.rho, eta=tv.eta, xi=data.xi, px=tv.p[0], py=tv.p[1],
                      pz=tv.p[2])

@@ -135,8 +135,8 @@ class LeastSquaresBackground(LeastSquares):
         self.target[self.sensor] -= self.b
 
     def start(self, mu):
-        self._fit(np.zeros(self.M), mu)
-        self.v = (self.mask * self.target / (self.mask + mu)).astype(self.dt)
+        self.target = self.cty.astype(np.float64)   # b = 0: the first data step fits it
+        super().start(mu)
 
     def update(self, hx, mu):
         self._fit((hx + self.xi / mu)[self.sensor], mu)
@@ -146,3 +146,26 @@ class LeastSquaresBackground(LeastSquares):
         self.v = v_new
         fit = crop(hx.astype(np.float64), self.M) + self.b - self.ys
         return stats, {"data": 0.5 * float(np.sum(self.wts * fit ** 2))}
+
+
+class ReweightedL1(L1):
+    """L1 with a weight per voxel, renewed to eps / (x + eps) (eps = ``eps_fraction`` x max x) each time the
+    solve converges, ``rounds`` times (Candes, Wakin & Boyd 2008)."""
+
+    def __init__(self, x, plane_weights, rounds, eps_fraction):
+        super().__init__(x, plane_weights)
+        self.plane, self.rounds, self.eps_fraction, self.done = plane_weights, rounds, eps_fraction, 0
+        self.voxel = np.ones_like(x)
+
+    def update(self, x, mu, weight):
+        self.lw = self.plane * self.voxel
+        return super().update(x, mu, weight)
+
+    def next_round(self, x) -> bool:
+        xp = np.maximum(x, 0)
+        eps = self.eps_fraction * float(xp.max())
+        if self.done >= self.rounds or eps <= 0:
+            return False
+        self.voxel = (eps / (xp + eps)).astype(x.dtype)
+        self.done += 1
+        return True

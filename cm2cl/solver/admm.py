@@ -28,7 +28,7 @@ from .memory import fft_scratch_per_plane, memory_estimate, plan_layout
 from .params import ADMMParams
 from .parts import Part
 from .result import Reconstruction
-from .terms import default_terms, plane_weights
+from .terms import plane_weights, terms_for
 from .walk import Walk
 
 log = logging.getLogger(__name__)
@@ -89,8 +89,7 @@ class ADMMSolver:
             self.psf_prescale = 1.0 / np.sqrt(np.sum(np.abs(psf).reshape(psf.shape[0], -1).sum(axis=1) ** 2))
         psf = psf * self.psf_prescale
         self.p = params
-        self.terms = terms if terms is not None else default_terms(background=params.background,
-                                                                   spacing_px=params.background_scale_px)
+        self.terms = terms if terms is not None else terms_for(params)
         if not self.terms.fused and lean is True:
             raise InputError("lean: the lean layout keeps the default terms' fused state; these terms need the whole one")
         self.slots = Slots()
@@ -315,8 +314,10 @@ class ADMMSolver:
                 part.swap("x", "g")   # x: new iterate, g: previous one (then scratch)
                 fill(part.rt, part.row.partials)
             terms.update(self, ctl)
-            if ctl.update(it, **terms.report(self._sums(it))):
+            if ctl.update(it, **terms.report(self._sums(it))) and not terms.next_round(self):
                 break
+            if ctl.converged:   # a new round of the terms (e.g. new l1 weights): wait for it to converge too
+                ctl.converged, ctl.calm, ctl.stop = False, 0, "max_iter"
         return self._result(ctl, y_scale)
 
     def _measurement(self, y, weights) -> float:
@@ -338,12 +339,14 @@ class ADMMSolver:
         terms = self.terms
         self.walk.fill(tuple(n for n in terms.volumes if n != "g") + ("v", "xi"))
         terms.reset()
+        self.warm = x0 is not None
         if x0 is not None:
             start = self._start_volume(x0, y_scale / self.psf_scale)
             for name in terms.start_volumes:
                 self.set_volume(name, start)
         wts = self.pixel_weights
-        ctl = Control(self.p, ProblemScale.of(np.where(wts > 0, self.y_n, 0.0), self.spectral_mean, self.nz),
+        ctl = Control(self.p, ProblemScale.of(np.where(wts > 0, self.y_n, 0.0), self.spectral_mean, self.nz,
+                                              self.nz * self.P[0] * self.P[1]),
                       callback, callback_every, splits=terms.splits)
         terms.start(self, ctl)
         return ctl

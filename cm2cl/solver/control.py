@@ -45,14 +45,22 @@ class ProblemScale:
     y_norm: float = 1.0
     #: number of depth planes
     planes: int = 1
+    #: voxels of the (padded) volume: the universal threshold's N
+    voxels: int = 1
 
     @classmethod
-    def of(cls, y_normalised, spectral_mean: float, planes: int = 1) -> "ProblemScale":
-        """From the normalised measurement (My, Mx), sum_i ||h_i||^2 of the normalised PSF stack and the
-        number of planes."""
+    def of(cls, y_normalised, spectral_mean: float, planes: int = 1, voxels: int | None = None) -> "ProblemScale":
+        """From the normalised measurement (My, Mx), sum_i ||h_i||^2 of the normalised PSF stack, the number
+        of planes and of voxels (default: planes x the sensor's pixels x 4, the full padding)."""
         y = np.asarray(y_normalised, np.float64)
+        n = voxels if voxels is not None else max(int(planes), 1) * 4 * y.size
         return cls(noise_sigma=max(noise_sigma(y), NOISE_FLOOR), spectral_mean=float(spectral_mean),
-                   y_norm=float(np.sqrt(np.sum(y * y))), planes=max(int(planes), 1))
+                   y_norm=float(np.sqrt(np.sum(y * y))), planes=max(int(planes), 1), voxels=max(int(n), 2))
+
+    @property
+    def universal_ratio(self) -> float:
+        """sqrt(2 ln N): the universal threshold of N voxels in units of the per-voxel noise."""
+        return float(np.sqrt(2.0 * np.log(self.voxels)))
 
     @property
     def noise_x(self) -> float:
@@ -65,7 +73,8 @@ class ProblemScale:
 
     def weights(self, p: ADMMParams) -> tuple[float, float]:
         """(l1, tv): the given weights, or the defaults relative to the volume-domain noise level."""
-        l1 = p.l1 if p.l1 is not None else p.l1_noise_ratio * self.noise_x
+        ratio = p.l1_noise_ratio if p.l1_noise_ratio is not None else self.universal_ratio
+        l1 = p.l1 if p.l1 is not None else ratio * self.noise_x
         tv = p.tv if p.tv is not None else p.tv_noise_ratio * self.noise_x
         return float(l1), float(tv)
 
@@ -209,7 +218,12 @@ class Control:
 
     def summary(self) -> dict:
         """What the result records about the control: why it stopped, and what the defaults came from."""
+        p, sc = self.p, self.scale
+        rule = ("given" if p.l1 is not None else "noise ratio" if p.l1_noise_ratio is not None
+                else "universal threshold sqrt(2 ln N) x noise_x")
         return {"stop": self.stop, "converged": self.converged, "l1": self.l1, "tv": self.tv,
+                "l1_rule": {"rule": rule, "voxels": sc.voxels, "ratio": self.l1 / sc.noise_x if sc.noise_x else None,
+                            "noise_x": sc.noise_x},
                 "noise_sigma": self.scale.noise_sigma, "noise_x": self.scale.noise_x, "spectral_mean": self.scale.spectral_mean,
                 "initial_penalties": {f"mu_{n}": mu for n, mu in self.mu0.items()},
                 "penalty_policy": self.p.penalty, "tol": self.p.tol, "tol_change": self.p.tol_change}

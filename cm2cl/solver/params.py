@@ -29,17 +29,18 @@ PENALTY_POLICIES = ("adaptive", "balance", "fixed")
 PRESETS = {
     "fast": {"max_iter": 100, "tol": 3e-3, "tol_change": 3e-3},
     "balanced": {},
-    "best": {"max_iter": 1000, "tol": 1e-4, "tol_change": 1e-4},
+    "best": {"max_iter": 3000, "tol": 1e-4, "tol_change": 1e-4},
 }
 
-#: priors for kinds of samples (``--prior``, measured in docs/paper_scenes.md): 'points' for point-like
-#: emitters (beads, sparse cell bodies): TV off, which spreads a point into a plateau where the PSF blurs
-#: it; 'points-weighted': TV off and each plane's l1 weight ~ ||h_i||^2, which keeps emitters in planes
-#: whose PSF spreads their light; 'default': l1 and TV for extended structure
+#: priors for kinds of samples (``--prior``; docs/quality.md, docs/paper_scenes.md): 'default' (l1 at the
+#: universal threshold per plane, TV off: on the quality suite the best for beads and fibres alike);
+#: 'points' (TV off, every plane's l1 alike: the former prior); 'points-weighted': each plane's l1 weight ~ ||h_i||^2;
+#: 'extended': TV at 5 x the noise level as well, for smooth extended structure
 PRIORS = {
     "default": {},
-    "points": {"tv_noise_ratio": 0.0},
+    "points": {"tv_noise_ratio": 0.0, "l1_plane_power": 0.0},
     "points-weighted": {"tv_noise_ratio": 0.0, "l1_plane_power": 2.0},
+    "extended": {"tv_noise_ratio": 5.0},
 }
 
 _NONNEG = {"type": "float", "min": 0}
@@ -60,22 +61,27 @@ def _param(default, spec: dict, help: str, *, auto: str = "", unit: str = "", fl
 class ADMMParams:
     l1: float | None = _param(
         None, _NONNEG, "Weight of the l1 (sparsity) term on the normalised problem.", flag=True,
-        auto="l1_noise_ratio ({l1_noise_ratio:g}) x the volume-domain noise level: the measurement's "
-             "estimated noise times the RMS PSF plane norm (info['noise_x'], reported in the log)")
+        auto="l1_noise_ratio x the volume-domain noise level (the measurement's estimated noise times the RMS "
+             "PSF plane norm, info['noise_x']); by default the ratio is the universal threshold sqrt(2 ln N) of "
+             "N voxels (info['l1_rule'])")
     tv: float | None = _param(
         None, _NONNEG, "Weight of 3D total variation on the normalised problem; 0 disables TV.", flag=True,
         auto="tv_noise_ratio ({tv_noise_ratio:g}) x the volume-domain noise level")
-    # 30 was chosen on a sweep (docs/weights.md); a 10x noisier measurement gets 10x the weight
-    l1_noise_ratio: float = _param(
-        30.0, _NONNEG, "Default l1 weight (when l1 is None) relative to the volume-domain noise level.")
+    # None: the universal threshold (Donoho & Johnstone 1994), chosen on docs/quality.md's suite
+    l1_noise_ratio: float | None = _param(
+        None, _NONNEG, "Default l1 weight (when l1 is None) relative to the volume-domain noise level.",
+        auto="sqrt(2 ln N), N the voxels of the padded volume: the largest back-projected noise of N voxels "
+             "stays below it with high probability, so no voxel is lit by noise alone")
+    # 0: TV spreads a bead into a plateau where the PSF blurs it; off, fibres are no worse (docs/quality.md)
     tv_noise_ratio: float = _param(
-        30.0, _NONNEG, "Default TV weight (when tv is None) relative to the volume-domain noise level.")
-    # q = 2 shrinks an isolated voxel by l1 c_i / ||h_i||^2 alike in every plane (docs/paper_scenes.md)
+        0.0, _NONNEG, "Default TV weight (when tv is None) relative to the volume-domain noise level.")
+    # q = 1: the back-projected noise of plane i is sigma ||h_i||, so the universal threshold is per plane
+    # (docs/quality.md); q = 2 shrinks an isolated voxel alike in every plane (docs/paper_scenes.md)
     l1_plane_power: float = _param(
-        0.0, {"type": "float", "min": 0, "max": 4},
-        "Plane i's l1 weight is l1 x ||h_i||^q / mean_j ||h_j||^q, q this power: 0 weighs all planes alike; 2 "
-        "shrinks a point source equally in every plane, keeping emitters in planes whose PSF spreads its light "
-        "(info['l1_plane_weights']).")
+        1.0, {"type": "float", "min": 0, "max": 4},
+        "Plane i's l1 weight is l1 x ||h_i||^q / mean_j ||h_j||^q, q this power: 1 (default) makes each plane's "
+        "weight follow its back-projected noise sigma ||h_i||; 0 weighs all planes alike; 2 shrinks a point source "
+        "equally in every plane (info['l1_plane_weights']).")
     tv_axial_weight: float = _param(
         1.0, _POS, "Weight of axial differences in TV relative to lateral ones (non-cubic voxels: e.g. dx / dz).",
         flag=True)
@@ -115,19 +121,31 @@ class ADMMParams:
         unit=_ITERS)
     mu_range: float = _param(
         1e4, {"type": "float", "min": 1}, "Penalties stay within [initial / mu_range, initial x mu_range].")
+    # 5e-4: at the universal threshold the tail is slower; 1e-3 stopped DiffuserCam 2D / 3D (binned) 2.5% / 3%
+    # above the optimum's objective, 5e-4 0.5% / 1.4% (918 / 525 iterations)
     tol: float = _param(
-        1e-3, _NONNEG,
+        5e-4, _NONNEG,
         "Stop when every active split's relative primal and dual residuals are below tol (Boyd et al. 2011, "
         "sec. 3.3) and the relative change of x is below tol_change, for patience consecutive iterations; "
         "0 runs to max_iter.", flag=True)
-    tol_change: float = _param(1e-3, _NONNEG, "The relative change of x must also be below this to stop.",
+    tol_change: float = _param(5e-4, _NONNEG, "The relative change of x must also be below this to stop.",
                                flag=True)
     patience: int = _param(3, {"type": "int", "min": 1}, "Consecutive iterations the stopping test must hold.",
                            unit=_ITERS, flag=True)
-    max_iter: int = _param(200, {"type": "int", "min": 1}, "Iteration cap.", unit=_ITERS, flag=True)
+    # 1000: with the background in the model and the universal threshold, solves stop by the rule at
+    # ~300-750 iterations (docs/quality.md)
+    max_iter: int = _param(1000, {"type": "int", "min": 1}, "Iteration cap.", unit=_ITERS, flag=True)
     normalize: bool = _param(
         True, {"type": "bool"}, "Scale y to max 1 and the PSFs to ||H|| = 1 (in float64 on the host; the volume "
         "is scaled back), so that weights and penalties mean the same on every dataset.")
+    l1_reweight: int = _param(
+        0, {"type": "int", "min": 0, "max": 10},
+        "Rounds of reweighted l1 (Candes, Wakin & Boyd 2008): each time the solve converges, each voxel's l1 "
+        "weight becomes eps / (x + eps) and the solve goes on, so that strong emitters keep their light and "
+        "weak maxima beside them shrink away; 0: plain l1 (the fused fast path).", flag=True)
+    l1_reweight_eps: float = _param(
+        0.1, {"type": "float", "min": 0, "max": 10, "exclusive": True},
+        "eps of the reweighted l1 as a fraction of the volume's maximum.", flag=True)
     background: str = _param(
         "model", {"type": "str", "choices": ("model", "none")},
         "'model': the data term is y = C H x + b with b a smooth, non-negative 2D background estimated jointly "

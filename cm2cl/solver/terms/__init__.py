@@ -8,7 +8,7 @@ from .background import LeastSquaresBackground
 from .base import Term
 from .data import LeastSquares
 from .fused import DefaultSet
-from .l1 import L1, plane_weights
+from .l1 import L1, ReweightedL1, plane_weights
 from .tv import TV
 
 
@@ -79,6 +79,9 @@ class GenericSet:
         return {"dx2": v["dx2"], "x2": v["x2"], "splits": {t.split: t.stats(v) for t in self.terms},
                 "objective": objective, "changes": changes}
 
+    def next_round(self, s) -> bool:
+        return any([t.next_round(s) for t in self.terms])
+
     def derived(self, s, name: str):
         return None
 
@@ -99,4 +102,12 @@ def default_terms(fused: bool = True, background: str = "none", spacing_px=None)
     return DefaultSet(data) if fused else GenericSet(data, (TV(), L1()))
 
 
-__all__ = ["Term", "LeastSquares", "LeastSquaresBackground", "data_term", "L1", "TV", "GenericSet", "DefaultSet", "default_terms", "plane_weights"]
+def terms_for(params):
+    """The terms ``params`` ask for: the fused default set, or with reweighted l1 the generic one."""
+    if params.l1_reweight:
+        return GenericSet(data_term(params.background, params.background_scale_px),
+                          (TV(), ReweightedL1(params.l1_reweight, params.l1_reweight_eps)))
+    return default_terms(True, params.background, params.background_scale_px)
+
+
+__all__ = ["Term", "LeastSquares", "LeastSquaresBackground", "data_term", "L1", "TV", "GenericSet", "DefaultSet", "default_terms", "terms_for", "ReweightedL1", "plane_weights"]

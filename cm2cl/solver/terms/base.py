@@ -57,6 +57,11 @@ class Term:
         """Its parts of the objective (unweighted), by name."""
         return {}
 
+    def next_round(self, s) -> bool:
+        """Called when the iteration has converged: change the term for another warm-started round (a
+        reweighted l1's weights) and return True, or return False (the solve stops)."""
+        return False
+
     def changes(self) -> dict:
         """(||z - z_old||^2, ||z||^2) of variables it keeps besides its split (the background's b), by name:
         the stopping rule also waits for their relative change."""

@@ -155,6 +155,9 @@ class DefaultSet:
                            "w": SplitStats(v["rw2"], v["sw2"], v["x2"], v["w2"], v["rho2"])},
                 "objective": {**self.data.objective(v), "l1": v["l1"], "tv": v["tv"]}, "changes": self.data.changes()}
 
+    def next_round(self, s) -> bool:
+        return False
+
     # ---- state readback ---------------------------------------------------------------------------
     def derived(self, s, name: str):
         """w, rho (from s) or eta (from p), computed on the device as the kernels that use them do."""

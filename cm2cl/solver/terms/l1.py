@@ -63,3 +63,38 @@ class L1(Term):
 
     def objective(self, v: dict) -> dict:
         return {"l1": v["l1"]}
+
+
+class ReweightedL1(L1):
+    """Reweighted l1 (Candes, Wakin & Boyd 2008): after the solve converges, each voxel's weight becomes
+    eps / (x + eps), eps = ``eps_fraction`` x max(x), and the solve goes on from where it was (``rounds``
+    such rounds): a voxel's shrinkage falls as it grows, so strong emitters keep their light and the weak
+    maxima that model mismatch leaves beside them are shrunk away. Per-voxel weights in a volume ``lw``."""
+
+    volumes = ("w", "rho", "lw")
+    kernels = (("terms.cl", "l1_update_voxel"),)
+
+    def __init__(self, rounds: int = 2, eps_fraction: float = 0.1):
+        self.rounds, self.eps_fraction = int(rounds), float(eps_fraction)
+        self.done = 0
+
+    def start(self, s, ctl) -> None:
+        self.done = 0
+        s.walk.fill(("lw",), 1.0)
+
+    def next_round(self, s) -> bool:
+        if self.done >= self.rounds:
+            return False
+        x = np.maximum(s.walk.gather("x"), 0)
+        eps = self.eps_fraction * float(x.max())
+        if eps <= 0:
+            return False
+        s.walk.scatter("lw", eps / (x + eps))
+        self.done += 1
+        return True
+
+    def update(self, s, ctl) -> None:
+        ny, nx = s.P
+        for i, part, j0, j1, n, a in s.walk.runs(("x", "w", "rho", "lw"), ("w", "rho")):
+            s.reduce_rows(part, "l1_update_voxel", "w", x=a["x"], w=a["w"], rho=a["rho"], l1=ctl.l1,
+                          l1w=self.plane_w.of(i, j0, j1), lw=a["lw"], mu=ctl.mu["w"], planes=n, ny=ny, nx=nx)
