@@ -197,6 +197,18 @@ inline int row_item(const int nx, const int ny, const int rows,
     return *y0 < ny;
 }
 
+/* The work-item's place as row_item gives it (xb0, xb1, y0, y1, g declared), or return past the last block */
+#define ROW_ITEM(nx, ny, rows) \
+    int xb0, xb1, y0, y1; \
+    size_t g; \
+    if (!row_item(nx, ny, rows, &xb0, &xb1, &y0, &y1, &g)) return
+
+/* Five vector sums into the partials at slot0.. (the reducing kernels' last step) */
+#define ADD_SUMS5(a0, a1, a2, a3, a4) do { \
+        const real_t sums_[5] = {lanes_sum(a0), lanes_sum(a1), lanes_sum(a2), lanes_sum(a3), lanes_sum(a4)}; \
+        add_partials(partials, pstride, g, slot0, sums_, 5); \
+    } while (0)
+
 /* The index in a slab of plane z, row y, x0 */
 inline size_t slab_index(const int z, const int y, const int x0, const int ny, const int nx) {
     return ((size_t)z * ny + y) * nx + x0;
@@ -226,6 +238,18 @@ inline realv next_plane(__global const real_t *v, __global const real_t *v_next,
     if (z < planes - 1) return load_row(v, i + plane, cnt);
     if (has_next) return load_row(v_next, i - (size_t)z * plane, cnt);
     return vc;
+}
+
+/* The TV density at the VW elements i.. of plane z, row y (xv: x there): |grad x| with forward differences
+ * (Neumann), the axial one weighted by aw, isotropic or anisotropic; x_next: the next slab when has_next */
+inline realv tv_density(__global const real_t *x, __global const real_t *x_next, const int has_next,
+                        const size_t i, const size_t plane, const int z, const int planes, const int cnt,
+                        const realv xv, const int y, const int ny, const int nx, const real_t aw, const int iso) {
+    const realv xn = next_plane(x, x_next, has_next, i, plane, z, planes, cnt, xv);
+    realv gx, gy;
+    grad_xy(x, i, xv, cnt, y, ny, nx, &gx, &gy);
+    const realv gz = aw * (xn - xv);
+    return iso ? sqrt(gx * gx + gy * gy + gz * gz) : fabs(gx) + fabs(gy) + fabs(gz);
 }
 
 /* pz of the plane before a slab's first plane at its elements i0.. (0 when has_prev is 0) */

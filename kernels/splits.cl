@@ -36,11 +36,7 @@ __kernel void update_w(__global const real_t *x, __global const real_t *x_next, 
                 const realv wn = split_w(sn, c, mu_w), rn = split_rho(sn, c, mu_w);
                 const realv dx = xi - load_row(x_old, i, cnt), pw = xi - wn, dw = wn - split_w(si, cs, mu_s);
                 store_row(sn, s, i, cnt);
-                const realv xn = next_plane(x, x_next, has_next, i, plane, z, planes, cnt, xi);
-                realv gx, gy;
-                grad_xy(x, i, xi, cnt, y, ny, nx, &gx, &gy);
-                const realv gz = aw * (xn - xi);
-                const realv tv = iso ? sqrt(gx * gx + gy * gy + gz * gz) : fabs(gx) + fabs(gy) + fabs(gz);
+                const realv tv = tv_density(x, x_next, has_next, i, plane, z, planes, cnt, xi, y, ny, nx, aw, iso);
                 b0 += lanes_below(dx * dx, cnt);
                 b1 += lanes_below(xi * xi, cnt);
                 b2 += lanes_below(lw * fabs(xi), cnt);

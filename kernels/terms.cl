@@ -7,9 +7,7 @@
 __kernel void x_change(__global const real_t *x, __global const real_t *x_old,
                        const int planes, const int ny, const int nx, const int rows,
                        __global real_t *partials, const int pstride, const int slot0) {
-    int xb0, xb1, y0, y1;
-    size_t g;
-    if (!row_item(nx, ny, rows, &xb0, &xb1, &y0, &y1, &g)) return;
+    ROW_ITEM(nx, ny, rows);
     realv a0 = 0, a1 = 0;
     for (int y = y0; y < y1; y++)
         for (int z = 0; z < planes; z++)
@@ -29,9 +27,7 @@ __kernel void x_change(__global const real_t *x, __global const real_t *x_old,
 __kernel void combine(__global real_t *out, __global const real_t *p, __global const real_t *q,
                       const real_t a, const real_t b, const int add, const int planes, const int ny,
                       const int nx, const int rows) {
-    int xb0, xb1, y0, y1;
-    size_t item;
-    if (!row_item(nx, ny, rows, &xb0, &xb1, &y0, &y1, &item)) return;
+    ROW_ITEM(nx, ny, rows);
     for (int y = y0; y < y1; y++)
         for (int zz = 0; zz < planes; zz++)
             for (int xb = xb0; xb < xb1; xb++) {
@@ -42,38 +38,37 @@ __kernel void combine(__global real_t *out, __global const real_t *p, __global c
             }
 }
 
-/* The l1 + non-negativity split w = x with per-voxel weights c = l1 l1w[z] (l1w: each plane's weight):
+/* The l1 + non-negativity split w = x with weights c = l1 l1w[z] (l1w: each plane's weight), times lw[i]
+ * per voxel when `voxel` (reweighted l1):
  *     w' = max(x + rho/mu - c/mu, 0),   rho' = rho + mu (x - w')
- * Reduces sum l1w |x|, ||x - w'||^2, ||w' - w||^2, ||w'||^2, ||rho'||^2. */
+ * Reduces sum c/l1 |x|, ||x - w'||^2, ||w' - w||^2, ||w'||^2, ||rho'||^2. */
 __kernel void l1_update(__global const real_t *x, __global real_t *w, __global real_t *rho,
-                        const real_t l1, __global const real_t *l1w, const real_t mu,
-                        const int planes, const int ny, const int nx, const int rows,
+                        const real_t l1, __global const real_t *l1w, __global const real_t *lw, const int voxel,
+                        const real_t mu, const int planes, const int ny, const int nx, const int rows,
                         __global real_t *partials, const int pstride, const int slot0) {
-    int xb0, xb1, y0, y1;
-    size_t g;
-    if (!row_item(nx, ny, rows, &xb0, &xb1, &y0, &y1, &g)) return;
+    ROW_ITEM(nx, ny, rows);
     realv a0 = 0, a1 = 0, a2 = 0, a3 = 0, a4 = 0;
     for (int y = y0; y < y1; y++)
         for (int z = 0; z < planes; z++) {
-            const real_t lw = l1w[z], c = l1 * lw;
+            const real_t pw = l1w[z];
             for (int xb = xb0; xb < xb1; xb++) {
                 const int x0 = xb * VW, cnt = nx - x0;
                 const size_t i = slab_index(z, y, x0, ny, nx);
                 const realv xi = load_row(x, i, cnt), wo = load_row(w, i, cnt), ro = load_row(rho, i, cnt);
+                const realv wt = voxel ? pw * load_row(lw, i, cnt) : (realv)pw, c = l1 * wt;
                 const realv wn = fmax(xi + ro / mu - c / mu, (real_t)0);
                 const realv rn = ro + mu * (xi - wn);
-                const realv pw = xi - wn, dw = wn - wo;
+                const realv pr = xi - wn, dw = wn - wo;
                 store_row(wn, w, i, cnt);
                 store_row(rn, rho, i, cnt);
-                a0 += lanes_below(lw * fabs(xi), cnt);
-                a1 += lanes_below(pw * pw, cnt);
+                a0 += lanes_below(wt * fabs(xi), cnt);
+                a1 += lanes_below(pr * pr, cnt);
                 a2 += lanes_below(dw * dw, cnt);
                 a3 += lanes_below(wn * wn, cnt);
                 a4 += lanes_below(rn * rn, cnt);
             }
         }
-    const real_t sums[5] = {lanes_sum(a0), lanes_sum(a1), lanes_sum(a2), lanes_sum(a3), lanes_sum(a4)};
-    add_partials(partials, pstride, g, slot0, sums, 5);
+    ADD_SUMS5(a0, a1, a2, a3, a4);
 }
 
 /* The TV split u = x after the dual iterations (tv.cl) on p:
@@ -87,9 +82,7 @@ __kernel void tv_update(__global real_t *u, __global real_t *eta, __global const
                         const real_t tau, const real_t mu, const real_t aw, const int iso,
                         const int planes, const int ny, const int nx, const int rows,
                         __global real_t *partials, const int pstride, const int slot0) {
-    int xb0, xb1, y0, y1;
-    size_t g;
-    if (!row_item(nx, ny, rows, &xb0, &xb1, &y0, &y1, &g)) return;
+    ROW_ITEM(nx, ny, rows);
     const size_t plane = (size_t)ny * nx;
     realv a0 = 0, a1 = 0, a2 = 0, a3 = 0, a4 = 0;
     for (int y = y0; y < y1; y++)
@@ -106,50 +99,12 @@ __kernel void tv_update(__global real_t *u, __global real_t *eta, __global const
                 const realv pu = xv - un, du = un - load_row(u, i, cnt);
                 store_row(un, u, i, cnt);
                 store_row(en, eta, i, cnt);
-                const realv xn = next_plane(x, x_next, has_next, i, plane, zz, planes, cnt, xv);
-                realv gx, gy;
-                grad_xy(x, i, xv, cnt, y, ny, nx, &gx, &gy);
-                const realv gz = aw * (xn - xv);
-                const realv tv = iso ? sqrt(gx * gx + gy * gy + gz * gz) : fabs(gx) + fabs(gy) + fabs(gz);
+                const realv tv = tv_density(x, x_next, has_next, i, plane, zz, planes, cnt, xv, y, ny, nx, aw, iso);
                 a0 += lanes_below(tv, cnt);
                 a1 += lanes_below(pu * pu, cnt);
                 a2 += lanes_below(du * du, cnt);
                 a3 += lanes_below(un * un, cnt);
                 a4 += lanes_below(en * en, cnt);
             }
-    const real_t sums[5] = {lanes_sum(a0), lanes_sum(a1), lanes_sum(a2), lanes_sum(a3), lanes_sum(a4)};
-    add_partials(partials, pstride, g, slot0, sums, 5);
-}
-
-/* l1_update with a weight per voxel as well: c = l1 l1w[z] lw[i] (reweighted l1, cm2cl/solver/terms/l1.py). */
-__kernel void l1_update_voxel(__global const real_t *x, __global real_t *w, __global real_t *rho,
-                              const real_t l1, __global const real_t *l1w, __global const real_t *lw,
-                              const real_t mu, const int planes, const int ny, const int nx, const int rows,
-                              __global real_t *partials, const int pstride, const int slot0) {
-    int xb0, xb1, y0, y1;
-    size_t g;
-    if (!row_item(nx, ny, rows, &xb0, &xb1, &y0, &y1, &g)) return;
-    realv a0 = 0, a1 = 0, a2 = 0, a3 = 0, a4 = 0;
-    for (int y = y0; y < y1; y++)
-        for (int z = 0; z < planes; z++) {
-            const real_t pw = l1w[z];
-            for (int xb = xb0; xb < xb1; xb++) {
-                const int x0 = xb * VW, cnt = nx - x0;
-                const size_t i = slab_index(z, y, x0, ny, nx);
-                const realv xi = load_row(x, i, cnt), wo = load_row(w, i, cnt), ro = load_row(rho, i, cnt);
-                const realv wt = pw * load_row(lw, i, cnt), c = l1 * wt;
-                const realv wn = fmax(xi + ro / mu - c / mu, (real_t)0);
-                const realv rn = ro + mu * (xi - wn);
-                const realv dw = wn - wo, pr = xi - wn;
-                store_row(wn, w, i, cnt);
-                store_row(rn, rho, i, cnt);
-                a0 += lanes_below(wt * fabs(xi), cnt);
-                a1 += lanes_below(pr * pr, cnt);
-                a2 += lanes_below(dw * dw, cnt);
-                a3 += lanes_below(wn * wn, cnt);
-                a4 += lanes_below(rn * rn, cnt);
-            }
-        }
-    const real_t sums[5] = {lanes_sum(a0), lanes_sum(a1), lanes_sum(a2), lanes_sum(a3), lanes_sum(a4)};
-    add_partials(partials, pstride, g, slot0, sums, 5);
+    ADD_SUMS5(a0, a1, a2, a3, a4);
 }

@@ -167,7 +167,7 @@ def test_background_in_the_model_recovers_beads_under_haze(rt):
 
 def test_reweighted_l1_matches_the_twin_and_reweights_after_convergence(rt):
     """l1_reweight: each time the solve converges the voxels' l1 weights become eps / (x + eps) and it goes
-    on; the device (generic set, kernel l1_update_voxel) and the float64 twin take the same rounds at the
+    on; the device (generic set, l1_update with per-voxel weights) and the float64 twin take the same rounds at the
     same iterations and agree to rounding; the rounds change the answer."""
     if not rt.caps.fp64:
         pytest.skip("float64 needed")

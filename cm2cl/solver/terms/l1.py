@@ -51,9 +51,10 @@ class L1(Term):
 
     def update(self, s, ctl) -> None:
         ny, nx = s.P
-        for i, part, j0, j1, n, a in s.walk.runs(("x", "w", "rho"), ("w", "rho")):
+        for i, part, j0, j1, n, a in s.walk.runs(("x",) + self.volumes, ("w", "rho")):
             s.reduce_rows(part, "l1_update", "w", x=a["x"], w=a["w"], rho=a["rho"], l1=ctl.l1,
-                          l1w=self.plane_w.of(i, j0, j1), mu=ctl.mu["w"], planes=n, ny=ny, nx=nx)
+                          l1w=self.plane_w.of(i, j0, j1), lw=a.get("lw", a["w"]), voxel="lw" in a, mu=ctl.mu["w"],
+                          planes=n, ny=ny, nx=nx)
 
     def weights(self, ctl) -> dict:
         return {"l1": ctl.l1}
@@ -72,7 +73,6 @@ class ReweightedL1(L1):
     maxima that model mismatch leaves beside them are shrunk away. Per-voxel weights in a volume ``lw``."""
 
     volumes = ("w", "rho", "lw")
-    kernels = (("terms.cl", "l1_update_voxel"),)
 
     def __init__(self, rounds: int = 2, eps_fraction: float = 0.1):
         self.rounds, self.eps_fraction = int(rounds), float(eps_fraction)
@@ -92,9 +92,3 @@ class ReweightedL1(L1):
         s.walk.scatter("lw", eps / (x + eps))
         self.done += 1
         return True
-
-    def update(self, s, ctl) -> None:
-        ny, nx = s.P
-        for i, part, j0, j1, n, a in s.walk.runs(("x", "w", "rho", "lw"), ("w", "rho")):
-            s.reduce_rows(part, "l1_update_voxel", "w", x=a["x"], w=a["w"], rho=a["rho"], l1=ctl.l1,
-                          l1w=self.plane_w.of(i, j0, j1), lw=a["lw"], mu=ctl.mu["w"], planes=n, ny=ny, nx=nx)
