@@ -71,7 +71,7 @@ def test_cli_background_option(rt, tmp_path, capsys):
     assert main(base + ["-o", str(tmp_path / "v.ome.tif"), "--background", "opening:6px", "--save-background"]) == 0
     bg, _ = io.read_tiff(tmp_path / "v.background.ome.tif")
     assert bg.shape == y.shape and bg.min() >= 199
-    for spec, msg in (("opening:0.5px", "smaller than a pixel"), ("blur:3", "expected 'opening:RADIUS_UM'"),
+    for spec, msg in (("opening:0.5px", "smaller than a pixel"), ("blur:3", "expected 'model', 'none', 'opening:RADIUS_UM'"),
                       ("opening:20", "needs the measurement's pixel size")):
         assert main(base + ["-o", str(tmp_path / "w.ome.tif"), "--background", spec]) == 2
         assert msg in capsys.readouterr().err

@@ -22,7 +22,7 @@ def parse_background(text: str, pixel_um: float | None):
     for a radius in um)."""
     m = re.fullmatch(r"opening:([0-9.eE+-]+)(px|um)?", str(text).strip())
     if not m:
-        raise InputError(f"background: expected 'opening:RADIUS_UM' or 'opening:RADIUSpx', got {text!r}")
+        raise InputError(f"background: expected 'model', 'none', 'opening:RADIUS_UM' or 'opening:RADIUSpx', got {text!r}")
     try:
         r = float(m.group(1))
     except ValueError as exc:
