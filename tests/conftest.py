@@ -16,6 +16,14 @@ def rt():
         pytest.skip(f"no OpenCL device: {exc}")
 
 
+@pytest.fixture
+def rt64(rt):
+    """The runtime, for tests that compare against the float64 twin to float64 rounding."""
+    if not rt.caps.fp64:
+        pytest.skip(f"device '{rt.caps.name}' has no fp64 support (cl_khr_fp64)")
+    return rt
+
+
 @pytest.fixture(params=["float32", "float64"])
 def dtype(request, rt):
     dt = np.dtype(request.param)

@@ -92,9 +92,7 @@ def test_device_matches_float64_reference(rt, backend, tv_isotropic):
     np.testing.assert_allclose(r1.log_array("objective"), r0.log_array("objective"), rtol=1e-5)
 
 
-def test_float64_device_matches_reference_to_rounding(rt):
-    if not rt.caps.fp64:
-        pytest.skip(f"device '{rt.caps.name}' has no fp64 support")
+def test_float64_device_matches_reference_to_rounding(rt64):
     psf, _, y = bead_problem(2)
     kw = dict(l1=2e-3, tv=5e-4, max_iter=25, tol=0)
     r0 = ref.admm(y, psf, padded_shape=(64, 80), **kw)

@@ -26,12 +26,10 @@ def _noisy(seed, nz=5):
 @pytest.mark.parametrize("params", [{"background": "none"}, {"penalty": "balance", "background": "none"},
                                     {"tv": 0.0, "background": "none"}, {"background": "model"},
                                     {"tv_isotropic": False, "l1_plane_power": 2.0, "tv_axial_weight": 0.5}])
-def test_generic_terms_give_the_fused_iterates(rt, layout, params):
+def test_generic_terms_give_the_fused_iterates(rt64, layout, params):
     """Fused (s, p; w, rho, eta derived) and generic (w, rho, u, eta stored, one kernel per term) runs of the
     default objective: 50 float64 iterations agree to float64 rounding in the volume, the objective and the
     residuals, on every layout and with the penalties changing (balance) or TV off."""
-    if not rt.caps.fp64:
-        pytest.skip("float64 needed to compare the two paths to rounding")
     psf, y = _noisy(3)
     out = []
     for fused in (True, False):
@@ -165,12 +163,10 @@ def test_background_in_the_model_recovers_beads_under_haze(rt):
     assert rec.info["background"]["model"] != "none" and plain.info["background"] == {"model": "none"}
 
 
-def test_reweighted_l1_matches_the_twin_and_reweights_after_convergence(rt):
+def test_reweighted_l1_matches_the_twin_and_reweights_after_convergence(rt64):
     """l1_reweight: each time the solve converges the voxels' l1 weights become eps / (x + eps) and it goes
     on; the device (generic set, l1_update with per-voxel weights) and the float64 twin take the same rounds at the
     same iterations and agree to rounding; the rounds change the answer."""
-    if not rt.caps.fp64:
-        pytest.skip("float64 needed")
     psf, y = _noisy(7)
     kw = dict(l1=3e-3, tv=0.0, max_iter=600, l1_reweight=2, l1_reweight_eps=0.2, background="none")
     r0 = ref.admm(y, psf, padded_shape=(64, 80), **kw)

@@ -5,7 +5,7 @@
 from __future__ import annotations
 
 from .background import LeastSquaresBackground
-from .base import Term
+from .base import IdentityTerm, Term
 from .data import LeastSquares
 from .fused import DefaultSet
 from .l1 import L1, ReweightedL1, plane_weights
@@ -110,4 +110,4 @@ def terms_for(params):
     return default_terms(True, params.background, params.background_scale_px)
 
 
-__all__ = ["Term", "LeastSquares", "LeastSquaresBackground", "data_term", "L1", "TV", "GenericSet", "DefaultSet", "default_terms", "terms_for", "ReweightedL1", "plane_weights"]
+__all__ = ["Term", "IdentityTerm", "LeastSquares", "LeastSquaresBackground", "data_term", "L1", "TV", "GenericSet", "DefaultSet", "default_terms", "terms_for", "ReweightedL1", "plane_weights"]

@@ -9,11 +9,14 @@ the x step (cm2cl/solver/xstep.py)."""
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
+
 from ..control import SplitStats
 
 
-class Term:
-    """One split of the objective. ``kind``: 'data' (v = Hx, one per solve) or 'identity' (z = x)."""
+class Term(ABC):
+    """One split of the objective. ``kind``: 'data' (v = Hx, one per solve) or 'identity' (z = x).
+    A term must say how it updates and what its residuals are; the rest has defaults."""
 
     split: str = ""
     kind: str = "identity"
@@ -41,17 +44,13 @@ class Term:
         """The weights of its objective parts, by name (the data term's part counts as it is)."""
         return {}
 
-    def add_rhs(self, s, part, j: int, n: int, a: dict, mu: float, first: bool) -> None:
-        """t (+)= mu z - dual on slab j of ``part`` (``first``: t = ...)."""
-        raise NotImplementedError
-
+    @abstractmethod
     def update(self, s, ctl) -> None:
         """Its prox and dual update after the x step (x: the new iterate), adding its sums."""
-        raise NotImplementedError
 
+    @abstractmethod
     def stats(self, v: dict) -> SplitStats:
         """Its split's squared norms from the solve's named sums ``v``."""
-        raise NotImplementedError
 
     def objective(self, v: dict) -> dict:
         """Its parts of the objective (unweighted), by name."""
@@ -70,3 +69,13 @@ class Term:
     def derived(self, s, name: str):
         """A volume of its state that it does not store (None: not one of its own)."""
         return None
+
+
+class IdentityTerm(Term):
+    """A term on a split z = x: it also adds mu z - dual to the x step's right-hand side."""
+
+    kind = "identity"
+
+    @abstractmethod
+    def add_rhs(self, s, part, j: int, n: int, a: dict, mu: float, first: bool) -> None:
+        """t (+)= mu z - dual on slab j of ``part`` (``first``: t = ...)."""

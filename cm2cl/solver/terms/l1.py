@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..control import SplitStats
-from .base import Term
+from .base import IdentityTerm
 
 
 def plane_weights(psf_n, power: float) -> np.ndarray:
@@ -35,7 +35,7 @@ class PlaneWeights:
         return self.slab[i][j0] if j0 == j1 else self.whole[i]
 
 
-class L1(Term):
+class L1(IdentityTerm):
     split = "w"
     volumes = ("w", "rho")
     sums = ("l1", "rw2", "sw2", "w2", "rho2")

@@ -4,10 +4,10 @@ projected-gradient iterations on the dual p = (px, py, pz) (kernels/tv.cl), with
 from __future__ import annotations
 
 from ..control import SplitStats
-from .base import Term
+from .base import IdentityTerm
 
 
-class TV(Term):
+class TV(IdentityTerm):
     split = "u"
     volumes = ("u", "eta", "z", "px", "py", "pz")
     sums = ("tv", "ru2", "su2", "u2", "eta2")
