@@ -97,6 +97,7 @@ class LeastSquaresBackground(LeastSquares):
     def __init__(self, spacing_px=None):
         self.given_spacing = spacing_px
         self.fit = None
+        self._b = None
 
     def setup(self, s) -> None:
         self.fit = Background(s.M, knot_spacing(s.psf_support_px, s.M, self.given_spacing))
@@ -119,7 +120,8 @@ class LeastSquaresBackground(LeastSquares):
         super().start(s, ctl)
         self._change = (0.0, 0.0)
         self.fit.c[...] = 0.0
-        self._set_target(s, self.fit.plane())
+        self._b = self.fit.plane()
+        self._set_target(s, self._b)
 
     def update(self, s, ctl) -> None:
         mu = ctl.mu["v"]
@@ -128,9 +130,9 @@ class LeastSquaresBackground(LeastSquares):
         s.row_grid(part, "combine", out=pl["r"], p=pl["hx"], q=pl["xi"], a=1.0, b=1.0 / mu, add=False, planes=1,
                    ny=ny, nx=nx)
         a = pl["r"].get()[0][s.crop].astype(np.float64)   # Hx + xi / mu on the sensor
-        old = self.fit.plane()
         b = self.fit.fit(s.y_n - a, self._weights(s, mu), mu)
-        self._change = (float(np.sum((b - old) ** 2)), float(np.sum(b * b)))
+        self._change = (float(np.sum((b - self._b) ** 2)), float(np.sum(b * b)))
+        self._b = b
         self._set_target(s, b)
         s.reduce_rows(part, "update_v", "v", v=pl["v"], xi=pl["xi"], hx=pl["hx"], cty=pl["ytb"], cw=pl["cw"],
                       mu_v=mu, py=ny, px=nx)
@@ -140,4 +142,4 @@ class LeastSquaresBackground(LeastSquares):
 
     def background(self, s) -> np.ndarray:
         """b on the sensor, normalised units."""
-        return self.fit.plane()
+        return self._b
