@@ -177,3 +177,20 @@ def test_reweighted_l1_matches_the_twin_and_reweights_after_convergence(rt64):
     err = np.linalg.norm(r1.volume_padded - r0.volume_padded) / np.linalg.norm(r0.volume_padded)
     assert err < 1e-9, err
     assert np.linalg.norm(r1.volume - plain.volume) > 0.01 * np.linalg.norm(plain.volume)
+
+
+def test_background_twin_stops_where_the_device_does(rt64):
+    """Under haze with the background in the model and the default stopping rule, the float64 twin and the
+    device stop at the same iteration, and both held on until b's relative change (logged as
+    rel_change_b) fell below tol_change as well as the volume's."""
+    psf, _, y = bead_problem(6)
+    yy, xx = np.mgrid[:32, :40]
+    y = y + 0.3 * y.max() * np.exp(-((yy - 12) ** 2 + (xx - 25) ** 2) / (2 * 15.0 ** 2))
+    kw = dict(l1=1e-3, tv=1e-3, max_iter=2000, padded_shape=(64, 80))
+    r0 = ref.admm(y, psf, **kw)
+    r1 = cm2cl.reconstruct(y, psf, dtype=np.float64, **kw)
+    assert r0.info["converged"] and r1.info["converged"] and r1.iterations == r0.iterations
+    for r in (r0, r1):
+        b = r.log_array("rel_change_b")
+        assert b[-1] <= r.params["tol_change"] < b.max()
+    np.testing.assert_allclose(r0.log_array("rel_change_b"), r1.log_array("rel_change_b"), rtol=1e-6, atol=1e-12)

@@ -85,7 +85,7 @@ def admm(y, psf, params=None, padded_shape=None, dtype=np.float64, workers=None,
             st, obj = t.update(x, mu[t.split], weight[t.split])
             splits[t.split] = SplitStats(**st)
             objective.update(obj)
-        if ctl.update(it, dx2=dx2, x2=sq(x), splits=splits, objective=objective):
+        if ctl.update(it, dx2=dx2, x2=sq(x), splits=splits, objective=objective, changes=data.changes()):
             if not (p.l1_reweight and l1.next_round(x)):
                 break
             ctl.converged, ctl.calm, ctl.stop = False, 0, "max_iter"   # another round of l1 weights

@@ -36,6 +36,10 @@ class LeastSquares:
         self.v = v_new
         return stats, {"data": 0.5 * float(np.sum(self.wts * (crop(hx.astype(np.float64), self.M) - self.ys) ** 2))}
 
+    def changes(self):
+        """(||z - z_old||^2, ||z||^2) of variables besides the split: the stopping rule waits for them too."""
+        return {}
+
 
 class L1:
     """l1 sum_z c_z |x_z| + i(x >= 0) on w = x: w' = max(x + rho/mu - l1 c/mu, 0), rho += mu (x - w')."""
@@ -130,13 +134,19 @@ class LeastSquaresBackground(LeastSquares):
 
         q = np.sqrt((self.wts * mu / (self.wts + mu)).ravel())
         c, _ = nnls(q[:, None] * self.B, q * (self.ys.astype(np.float64) - a_sensor).ravel(), maxiter=100 * self.B.shape[1])
-        self.b = (self.B @ c).reshape(self.M)
+        b = (self.B @ c).reshape(self.M)
+        self.change = (sq(b - self.b), sq(b))
+        self.b = b
         self.target = self.cty.astype(np.float64).copy()
         self.target[self.sensor] -= self.b
 
     def start(self, mu):
         self.target = self.cty.astype(np.float64)   # b = 0: the first data step fits it
+        self.change = (0.0, 0.0)
         super().start(mu)
+
+    def changes(self):
+        return {"b": self.change}
 
     def update(self, hx, mu):
         self._fit((hx + self.xi / mu)[self.sensor], mu)
