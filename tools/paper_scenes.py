@@ -67,8 +67,8 @@ def run_variant(name, sim, label, var, kw, marks, ts) -> dict:
     tr = time.perf_counter() - t
     m, thirds = score(rec.volume)
     if var == "default":
-        analysis.mip_png(rec.volume, DOCS / "img" / f"paper_{name}_mip.png", title=f"{name}: cm2cl defaults",
-                         gamma=0.6)
+        analysis.mip_png(rec.volume, DOCS / "img" / f"paper_{name}_mip.png", sim.voxel_size_um, sim.depths_um,
+                         title=f"{name}: cm2cl defaults", gamma=0.6)
     return dict(scene=name, variant=label, shape=f"{sim.psf.shape[0]} x {sim.psf.shape[1]} x {sim.psf.shape[2]}",
                 sim_s=ts, rec_s=tr, iterations=rec.iterations, converged=rec.info["converged"],
                 stop=rec.info["stop"], recall=m["recall"], precision=m["precision"], n_true=m["n_true"],

@@ -24,12 +24,13 @@ def content_region(volume, margin: int = 10, rel: float = 0.05) -> tuple:
             slice(max(c.min() - margin, 0), min(c.max() + margin + 1, proj.shape[1])))
 
 
-def mip_png(volume, path, voxel_size_um=(1.0, 1.0, 1.0), depths_um=None, title: str | None = None,
+def mip_png(volume, path, voxel_size_um=None, depths_um=None, title: str | None = None,
             cmap: str = "turbo", gamma: float = 1.0, dpi: int = 120, region=None) -> Path:
     """Save orthogonal maximum-intensity projections (XY, XZ, YZ) of a (nz, ny, nx) volume as a
     PNG with depth colour-coding (hue = depth of the maximum, brightness = its value ** gamma).
     ``region`` = (row slice, col slice) shows only part of the field (see :func:`content_region`);
-    axes are in um from the volume's first pixel.
+    axes are in um from the volume's first pixel when ``voxel_size_um`` (dz, dy, dx) is given, else in
+    pixels and planes (a volume without a physical scale is never labelled in um).
 
     matplotlib is imported here only (``pip install 'cm2cl[plot]'``)."""
     try:
@@ -43,7 +44,14 @@ def mip_png(volume, path, voxel_size_um=(1.0, 1.0, 1.0), depths_um=None, title: 
     vol = np.asarray(volume, dtype=np.float64)
     if vol.ndim != 3 or vol.size == 0:
         raise InputError(f"mip_png: expected a (nz, ny, nx) volume, got shape {vol.shape}")
-    dz, dy, dx = (float(v) for v in voxel_size_um)
+    if voxel_size_um is None:
+        if depths_um is not None:
+            raise InputError("mip_png: depths_um needs voxel_size_um (the lateral scale)")
+        dz, dy, dx = 1.0, 1.0, 1.0
+        lat, ax_unit = "px", "plane"
+    else:
+        dz, dy, dx = (float(v) for v in voxel_size_um)
+        lat = ax_unit = "um"
     y0 = x0 = 0.0
     if region is not None:
         rs, cs = region
@@ -85,16 +93,16 @@ def mip_png(volume, path, voxel_size_um=(1.0, 1.0, 1.0), depths_um=None, title: 
     ax_xy.imshow(xy, extent=(x0, x0 + w_xy, y0 + h_xy, y0), aspect="auto", interpolation="nearest")
     ax_yz.imshow(yz, extent=(z0, z1, y0 + h_xy, y0), aspect="auto", interpolation="nearest")
     ax_xz.imshow(xz, extent=(x0, x0 + w_xy, z1, z0), aspect="auto", interpolation="nearest")
-    ax_xy.set_xticks([]); ax_xy.set_ylabel("y (um)")
-    ax_yz.set_yticks([]); ax_yz.set_xlabel("z (um)"); ax_yz.xaxis.set_label_position("top")
+    ax_xy.set_xticks([]); ax_xy.set_ylabel(f"y ({lat})")
+    ax_yz.set_yticks([]); ax_yz.set_xlabel(f"z ({ax_unit})"); ax_yz.xaxis.set_label_position("top")
     ax_yz.xaxis.tick_top()
-    ax_xz.set_xlabel("x (um)"); ax_xz.set_ylabel("z (um)")
+    ax_xz.set_xlabel(f"x ({lat})"); ax_xz.set_ylabel(f"z ({ax_unit})")
     for ax in (ax_xy, ax_yz, ax_xz):
         ax.set_facecolor("black")
     if nz > 1:
         cax = fig.add_axes([m + w_xy * fx + 0.01, m, 0.02, w_z * zscale * fy * 0.9])
         sm = ScalarMappable(norm=Normalize(depths[0], depths[-1]), cmap=cmap)
-        fig.colorbar(sm, cax=cax, label="depth (um)")
+        fig.colorbar(sm, cax=cax, label="depth (um)" if ax_unit == "um" else "plane")
     if title:
         fig.suptitle(title)
     path = Path(path)

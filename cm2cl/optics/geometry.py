@@ -31,6 +31,7 @@ separable and the spot is the outer product of two 1D transforms.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from dataclasses import dataclass
 
@@ -48,6 +49,32 @@ __all__ = [
 # --------------------------------------------------------------------------------------------
 # closed forms
 # --------------------------------------------------------------------------------------------
+
+@functools.lru_cache(maxsize=64)
+def balancing_defocus_waves(w040: float, samples: int = 256) -> float:
+    """The defocus W020 (waves, W = W020 rho^2 + W040 rho^4 over the square pupil |rx|, |ry| <= 1, rho^2 =
+    rx^2 + ry^2) that maximises the Strehl ratio |<exp(2 pi i W)>|^2, the peak of the spot: the focus
+    of best intensity. The phase is symmetric, so the peak lies on the chief ray and the on-axis value is
+    the peak. Searched over [-3 W040, 3 W040] (the least-squares balance of a circular pupil is -W040, a
+    square's corners push it further); 0 for W040 = 0."""
+    if w040 == 0:
+        return 0.0
+    from scipy.optimize import minimize_scalar
+
+    t = (np.arange(samples) + 0.5) / samples * 2.0 - 1.0      # midpoints over [-1, 1]
+    r2 = (t[:, None] ** 2 + t[None, :] ** 2).ravel()
+    r4 = r2 * r2
+
+    def neg_strehl(w020):
+        return -abs(np.mean(np.exp(2j * np.pi * (w020 * r2 + w040 * r4)))) ** 2
+
+    # the Strehl ratio of a large aberration has side maxima: a coarse scan brackets the global one
+    grid = np.linspace(-3.0 * abs(w040), 3.0 * abs(w040), 241)
+    best = grid[int(np.argmin([neg_strehl(g) for g in grid]))]
+    step = grid[1] - grid[0]
+    res = minimize_scalar(neg_strehl, bounds=(best - step, best + step), method="bounded",
+                          options={"xatol": 1e-6 * max(abs(w040), 1e-12)})
+    return float(res.x)
 
 def foci_separation_mm(l_mm, l0_mm: float = 5.0, pitch_mm: float = 1.0):
     """Eq. 1: separation d (mm, on the sensor) of neighbouring foci for an object at distance l (mm)."""
@@ -124,10 +151,12 @@ class CM2Optics:
     supersample : fine samples per (binned) pixel for the diffraction patch; default: just enough
         for the intensity band limit 2a / (lambda l0).
     spherical_waves : primary spherical aberration W040 of every lenslet, in waves at the middle of
-        the aperture's side (rho = 1; the corners see 4x); 0 = diffraction limited. The paper gives
-        no value; the default 1 wave is an order-of-magnitude estimate for a plano-convex acrylic
-        lenslet of f ~ 3.3 mm at this aperture, with which the simulated axial PCC widths come
-        close to the measured ones (tests/test_optics.py reports them).
+        the aperture's side (rho = 1; the corners see 4x); 0 = diffraction limited. Each lenslet also
+        carries the defocus that puts its best focus at z = 0 (:attr:`focus_waves`). The paper gives no
+        value; the default 0.61 is fitted to its lateral resolution (~7 um against the 6.4 um
+        diffraction limit: the model's spot FWHM 7 / 6.4 times its diffraction-limited one;
+        ``tools/fit_optics.py``, docs/optics_fit.md, which also shows that the measured axial PCC widths
+        are beyond this parameter's reach).
     """
     lenses: tuple = (3, 3)
     pitch_mm: float = 1.0
@@ -140,7 +169,7 @@ class CM2Optics:
     binning: int = 1
     sensor_shape: tuple | None = None
     supersample: int | None = None
-    spherical_waves: float = 1.0
+    spherical_waves: float = 0.61
 
     def __post_init__(self):
         pos = {"type": "float", "min": 0, "exclusive": True}
@@ -197,6 +226,14 @@ class CM2Optics:
     def distance_mm(self, z_um):
         """Object-MLA distance l = l_nom + z (mm)."""
         return self.l_mm + np.asarray(z_um, dtype=float) / 1000.0
+
+    @property
+    def focus_waves(self) -> float:
+        """The defocus W020 (waves at rho = 1, the aperture's half side) that every lenslet's pupil carries
+        so that, with its spherical aberration, the sharpest spot is at z = 0 (the prototype is assembled
+        with the best focus at the nominal working distance: the paper's PSF scan has z = 0, l = 12 mm, in
+        focus). 0 without spherical aberration."""
+        return balancing_defocus_waves(self.spherical_waves)
 
     def magnification(self, z_um=0.0):
         """Lateral magnification l0 / l (the image is inverted)."""

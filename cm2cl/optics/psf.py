@@ -164,8 +164,8 @@ def lenslet_spot(optics: CM2Optics, z_um: float = 0.0, offsets_px=((0.0, 0.0),),
     for i in range(k):
         phase = base_phase + 2.0 * np.pi / (lam * optics.l0_mm) * (
             uu * offsets[i, 1] * pix_mm + vv * offsets[i, 0] * pix_mm)
-        if optics.spherical_waves:
-            phase = phase + 2.0 * np.pi * optics.spherical_waves * rho2 ** 2
+        if optics.spherical_waves:   # with the defocus that puts its best focus at z = 0
+            phase = phase + 2.0 * np.pi * (optics.spherical_waves * rho2 ** 2 + optics.focus_waves * rho2)
         if aberration is not None:
             hy, hx = h[i]
             hr = hx * rx + hy * ry
