@@ -178,6 +178,52 @@ def test_bad_series_inputs_are_refused_before_any_output(rt, tmp_path):
         FrameSeries([tmp_path / "missing.tif"])
 
 
+@pytest.mark.parametrize("extra, flag", [
+    (["--dry-run"], "--dry-run"), (["--mask", "saturated"], "--mask"), (["--mask", "bogus"], "--mask"),
+    (["--saturation", "1000"], "--saturation"), (["--tile", "32", "32"], "--tile"), (["--padded"], "--padded"),
+    (["--save-background"], "--save-background"), (["--host-memory", "1G"], "--host-memory"),
+    (["--background", "opening:10px"], "--background opening:R"), (["--background", "garbage"], "background"),
+    (["--camera", "gain=2,read-noise=1"], "--camera")])
+def test_series_refuses_the_frame_options_it_does_not_honour(rt, tmp_path, capsys, extra, flag):
+    """A series job given an option it does not apply (issue 27: they used to change nothing) stops before
+    any work with one line naming the option, and creates no store."""
+    from cm2cl.cli import main
+
+    _series(tmp_path, n=2)
+    out = tmp_path / "o.ome.zarr"
+    code = main(["reconstruct", str(tmp_path / "series.tif"), "--psf", str(tmp_path / "psf.ome.tif"), "-o", str(out),
+                 *ARGS, *extra])
+    err = capsys.readouterr().err
+    assert code == 2 and flag in err and len(err.strip().splitlines()) == 1, err
+    assert not out.exists() and not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
+
+
+def test_a_series_that_cannot_fit_is_refused_before_its_store_exists(rt, tmp_path, capsys):
+    """--stream never with a device cap far below one frame's state: refused by the planner before the
+    store is created (it used to leave an empty store)."""
+    from cm2cl.cli import main
+
+    _series(tmp_path, n=2)
+    out = tmp_path / "o.ome.zarr"
+    code = main(["reconstruct", str(tmp_path / "series.tif"), "--psf", str(tmp_path / "psf.ome.tif"), "-o", str(out),
+                 *ARGS, "--stream", "never", "--max-memory", "64K"])
+    err = capsys.readouterr().err
+    assert code == 2 and "too large to keep on the device" in err, err
+    assert not out.exists() and not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
+
+
+def test_sizes_below_a_byte_are_refused(rt, tmp_path, capsys):
+    """--max-memory 0.5 and --host-memory 0.5 used to round to 0 bytes, which means no limit."""
+    from cm2cl.cli import main
+
+    _series(tmp_path, n=2)
+    for opt in ("--max-memory", "--host-memory"):
+        with pytest.raises(SystemExit) as e:
+            main(["reconstruct", str(tmp_path / "series.tif"), "--psf", str(tmp_path / "psf.ome.tif"),
+                  "-o", str(tmp_path / "o.ome.zarr"), opt, "0.5"])
+        assert e.value.code == 2 and "at least 1 byte" in capsys.readouterr().err
+
+
 def test_dask_local_cluster_gives_the_local_result(rt, tmp_path):
     distributed = pytest.importorskip("distributed")
     _series(tmp_path, n=3)

@@ -23,8 +23,8 @@ def size(text: str) -> int:
         value = float(t[:-1] if mult > 1 else t) * mult
     except ValueError:
         value = float("nan")
-    if not np.isfinite(value) or value <= 0:
-        raise argparse.ArgumentTypeError(f"expected a size such as 4G, 512M or 1000000, got {text!r}")
+    if not np.isfinite(value) or value < 1:   # (0.5 would round to 0 bytes, which reads as "no limit")
+        raise argparse.ArgumentTypeError(f"expected a size of at least 1 byte such as 4G, 512M or 1000000, got {text!r}")
     return int(value)
 
 

@@ -11,14 +11,15 @@ from ..solver.params import ADMMParams
 from .inputs import STREAM, check_bin, check_psf_shape, devices_arg
 
 
-def layout(args, nz, sensor, dt, backend):
-    """(padded grid, the planner's layout) for a single frame (DeviceError when nothing fits)."""
+def layout(args, nz, sensor, dt, backend, padded_shape=None):
+    """(padded grid, the planner's layout) for a single frame (DeviceError when nothing fits); the grid is
+    ``padded_shape`` when given (support padding), else the full one."""
     from ..device import get_runtime
     from ..solver.forward import choose_padded_shape
     from ..solver.memory import plan_layout
 
     rts = [get_runtime(d) for d in devices_arg(args.device)]
-    P = choose_padded_shape(sensor, backend)
+    P = tuple(padded_shape) if padded_shape is not None else choose_padded_shape(sensor, backend)
     return P, plan_layout(nz, P, dt, backend, rts, max_memory=args.max_memory, stream=STREAM[args.stream],
                           lean=STREAM[args.lean])
 

@@ -34,6 +34,14 @@ EPILOG = """examples:
 
 #: options of a series only: (option, whether it was given)
 _SERIES_ONLY = (("--scheduler", lambda a: a.scheduler), ("--warm-start", lambda a: a.warm_start))
+#: options of a single frame that a series does not honour yet: (option, whether it was given); a series
+#: refuses them before any work rather than running without them
+_FRAME_ONLY = (("--dry-run", lambda a: a.dry_run), ("--mask", lambda a: a.mask),
+               ("--saturation", lambda a: a.saturation is not None), ("--tile", lambda a: a.tile),
+               ("--halo", lambda a: a.halo is not None), ("--padded", lambda a: a.padded),
+               ("--save-background", lambda a: a.save_background), ("--host-memory", lambda a: a.host_memory),
+               ("--camera", lambda a: a.camera not in (None, "none")),
+               ("--background opening:R", lambda a: a.background not in (None, "model", "none")))
 
 
 def register(sub):
@@ -56,6 +64,15 @@ def command(args) -> int:
     params = solver_params(args)
     if Path(args.output).suffix.lower() == ".zarr":
         from . import series
+
+        if args.background not in (None, "model", "none"):   # its syntax first: 'garbage' is not an opening
+            from ..io.background import check_background_spec
+
+            check_background_spec(args.background)
+        for flag, given in _FRAME_ONLY:
+            if given(args):
+                raise InputError(f"{flag}: not for a series (.ome.zarr output) yet; reconstruct the frames one by "
+                                 "one (-o FRAME.ome.tif) to use it")
 
         return series.command(args, params)
     if len(args.measurement) != 1:

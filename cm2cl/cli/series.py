@@ -32,8 +32,6 @@ def command(args, params: ADMMParams) -> int:
     from ..jobs.run import fingerprint
 
     out = Path(args.output)
-    if args.camera not in (None, "none"):   # the frame path's per-pixel weights are not in series jobs yet
-        raise InputError("--camera: not with a series (.ome.zarr output) yet; reconstruct the frames one by one")
     check_bin(args.bin)
     series = FrameSeries(args.measurement)                      # headers only: shapes checked first
     psf, pmeta = read_psf(args)
@@ -45,6 +43,13 @@ def command(args, params: ADMMParams) -> int:
     dt = np.dtype(args.dtype)
     key = fingerprint(h, params, series, dt, args.backend, prep)
     shape = (h.shape[0],) + tuple(n // args.bin for n in series.shape)
+    if not args.scheduler:   # a frame that cannot fit (--stream never, --max-memory) is refused before the store
+        from ..device import get_runtime
+        from ..device.fft import resolve_backend
+        from .plan import layout
+
+        backend = resolve_backend(args.backend, get_runtime(devices_arg(args.device)[0]))
+        layout(args, shape[0], shape[1:], dt, backend, solver_kw.get("padded_shape"))
     record = {"what": "cm2cl reconstruction series", "psf": str(args.psf), "params": params.as_dict(),
               "frames": [f"{f.path}[{f.index}]" for f in series.frames[:1000]], "scale": wp.scale, "prep": prep}
     t0 = time.perf_counter()
