@@ -72,7 +72,9 @@ def test_cli_background_option(rt, tmp_path, capsys):
     bg, _ = io.read_tiff(tmp_path / "v.background.ome.tif")
     assert bg.shape == y.shape and bg.min() >= 199
     for spec, msg in (("opening:0.5px", "smaller than a pixel"), ("blur:3", "expected 'model', 'none', 'opening:RADIUS_UM'"),
-                      ("opening:20", "needs the measurement's pixel size")):
+                      ("opening:20", "needs the measurement's pixel size"),
+                      ("opening:1e999px", "positive finite number"), ("opening:-4px", "positive finite number"),
+                      ("opening:1e6px", "larger than the measurement")):
         assert main(base + ["-o", str(tmp_path / "w.ome.tif"), "--background", spec]) == 2
         assert msg in capsys.readouterr().err
         assert not (tmp_path / "w.ome.tif").exists()

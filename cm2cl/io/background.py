@@ -27,6 +27,8 @@ def parse_background(text: str, pixel_um: float | None):
         r = float(m.group(1))
     except ValueError as exc:
         raise InputError(f"background: {m.group(1)!r} is not a number") from exc
+    if not np.isfinite(r) or r <= 0:
+        raise InputError(f"background: the opening's radius must be a positive finite number, got {m.group(1)!r}")
     if m.group(2) == "px":
         return r
     if not pixel_um:
@@ -47,8 +49,11 @@ def remove_background(img, radius_px: float, device=None):
     ``radius_px``, and ``img`` minus it (>= 0)."""
     from ..device.morphology import disk_segments, grey_opening
 
-    a, b = disk_segments(radius_px)
     img = np.asarray(img, np.float64)
+    if radius_px > max(img.shape):   # (the disk's fit costs time quadratic in its radius)
+        raise InputError(f"background: an opening of radius {radius_px:g} px is larger than the measurement "
+                         f"({' x '.join(map(str, img.shape))} px); the disk must fit in the image")
+    a, b = disk_segments(radius_px)
     if not np.all(np.isfinite(img)):
         raise InputError("background: the measurement contains NaN/Inf values")
     bg = grey_opening(img, a, b, device).astype(np.float64)
