@@ -245,10 +245,12 @@ def test_api_options_and_refusals():
     assert np.allclose(d3, [25.0, 45.0]) and rec3["steps"][0]["planes_dropped_for_binning"] == 1
     for kw, msg in [({"z_range": (0, 150)}, r"scan: depth range \[0, 150\] um is outside the scan's \[0, 90\] um"),
                     ({"dz_um": 25.0}, "dz: 25 um is not a whole multiple of the scan step 10 um"),
+                    ({"dz_um": -10.0}, "dz: must be a positive number of um, got -10"),
                     ({"axial_bin": 11}, "10 plane.s. in the depth range cannot be binned by 11"),
                     ({"dark": np.zeros((5, 5))}, r"the dark frame's shape \(5, 5\) differs from the planes' \(60, 60\)"),
                     ({"dark": ("region", (0, 70, 0, 5))}, "dark region rows 0:70, columns 0:5 is empty or outside"),
                     ({"sensor_shape": (0, 10)}, "sensor shape"),
+                    ({"lateral_bin": 200}, r"lateral bin: 200 is larger than the 60 x 60 planes"),
                     ({"shift_method": "cubic"}, "shift method: unknown 'cubic'")]:
         with pytest.raises(InputError, match=msg):
             prepare_psf_stack(planes, z, **kw)

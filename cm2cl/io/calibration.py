@@ -199,6 +199,8 @@ def prepare_psf_stack(scan, z_um, *, dark="corners", register: bool = True, shif
         raise InputError(f"max lag: must be a positive number of um, got {max_lag_um!r}")
     step = float(np.median(np.abs(np.diff(z)))) if n > 1 else None
     if dz_um is not None:
+        if not (np.isfinite(float(dz_um)) and float(dz_um) > 0):
+            raise InputError(f"dz: must be a positive number of um, got {float(dz_um):g}")
         if axial_bin is not None:
             raise InputError("axial binning: give the planes summed or dz_um, not both")
         if step is None:
@@ -232,6 +234,8 @@ def prepare_psf_stack(scan, z_um, *, dark="corners", register: bool = True, shif
     darkm = _DarkModel(dark, shape, name)
     fit_shape = shape if sensor_shape is None else tuple(int(v) for v in sensor_shape)
     if len(fit_shape) != 2 or min(fit_shape) < lateral_bin:
+        if sensor_shape is None:
+            raise InputError(f"lateral bin: {lateral_bin} is larger than the {shape[0]} x {shape[1]} planes")
         raise InputError(f"sensor shape: {sensor_shape!r} must be (rows, cols) of at least the lateral bin "
                          f"{lateral_bin}")
     if isinstance(axis, str) and axis != "centroid":
