@@ -1,7 +1,5 @@
 """``python -m cm2cl``: the same as the ``cm2cl`` command."""
 
-import sys
+from .cli import run
 
-from .cli import main
-
-sys.exit(main())
+run()

@@ -276,3 +276,53 @@ def test_executors_are_chosen_by_the_job_and_checked_before_any_output(rt, tmp_p
             vols.append(np.stack([store.read(i) for i in range(2)]))
             assert store.info(1)["warm"] is True
     np.testing.assert_array_equal(vols[0], vols[1])
+
+
+def test_sigterm_stops_a_frame_cleanly_and_leaves_no_lock(rt, tmp_path):
+    """SIGTERM during a single frame's solve (a batch system stopping the job): exit 143 with one line that
+    says so, no output and no lock file left (it used to exit 143 silently and keep its lock)."""
+    import signal
+    import time
+
+    psf, frames = _series(tmp_path, n=1)
+    tifffile.imwrite(tmp_path / "f.tif", frames[0])
+    out = tmp_path / "v.ome.tif"
+    p = subprocess.Popen([sys.executable, "-m", "cm2cl", "reconstruct", str(tmp_path / "f.tif"), "--psf",
+                          str(tmp_path / "psf.ome.tif"), "-o", str(out), "--max-iter", "1000000", "--tol", "0",
+                          "--quiet"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    lock = tmp_path / f".{out.name}.cm2cl-lock"
+    t0 = time.time()
+    while not lock.exists() and time.time() - t0 < 60 and p.poll() is None:
+        time.sleep(0.05)
+    assert lock.exists(), p.communicate()
+    time.sleep(0.5)                                   # inside the solve
+    p.send_signal(signal.SIGTERM)
+    _, err = p.communicate(timeout=60)
+    assert p.returncode == 143 and "terminated (SIGTERM)" in err and len(err.strip().splitlines()) == 1, err
+    assert not lock.exists() and not out.exists()
+    assert sorted(q.name for q in tmp_path.iterdir()) == ["f.tif", "psf.ome.tif", "series.tif"]
+
+
+@pytest.mark.parametrize("sig, code", [("SIGINT", 130), ("SIGTERM", 143)])
+def test_a_stopped_local_series_says_so_and_resumes(rt, tmp_path, sig, code):
+    """Ctrl-C or SIGTERM during a local series: exit 130 / 143 with the one line that says so (Ctrl-C used
+    to print it and then abort, exit 134: a worker thread was still inside the OpenCL runtime), and the
+    same command then finishes the job."""
+    import signal
+    import time
+
+    _series(tmp_path, n=2)
+    out = tmp_path / "s.ome.zarr"
+    argv = [sys.executable, "-m", "cm2cl", "reconstruct", str(tmp_path / "series.tif"), "--psf",
+            str(tmp_path / "psf.ome.tif"), "-o", str(out), "--max-iter", "1500", "--tol", "0", "--quiet"]
+    p = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    t0 = time.time()
+    while not (out / ".zattrs").exists() and time.time() - t0 < 60 and p.poll() is None:
+        time.sleep(0.05)
+    time.sleep(1.0)                                   # inside frame 0's solve
+    p.send_signal(getattr(signal, sig))
+    _, err = p.communicate(timeout=120)
+    assert p.returncode == code, (p.returncode, err)
+    assert err.strip().splitlines() == [err.strip().splitlines()[0]] and "resumes" in err
+    r = subprocess.run(argv, capture_output=True, text=True)
+    assert r.returncode == 0 and "2 frames" in r.stdout, r.stderr

@@ -4,4 +4,4 @@ prepare-psf). ``reconstruct`` is built from :mod:`.options` (its option groups),
 preparation its frame and series jobs share), :mod:`.plan` (header checks, --dry-run), :mod:`.frame`,
 :mod:`.series` and :mod:`.progress`. Only this package writes to the terminal."""
 
-from .main import main  # noqa: F401
+from .main import main, run  # noqa: F401

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
+import threading
 
 from ..errors import CM2Error
 from .options import flag_names, with_flags
@@ -34,21 +36,56 @@ def _registrars():
     return [devices.register, demo.register, simulate.register, reconstruct.register, prepare_psf.register]
 
 
+class Terminated(BaseException):
+    """SIGTERM (a batch system's stop, ``kill``), raised in the main thread so that every ``finally`` and
+    ``with`` on the way out runs: staged outputs are dropped and locks released, as on Ctrl-C."""
+
+
+def _raise_terminated(signum, frame):
+    raise Terminated()
+
+
 def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):
         parser.print_help()
         return 1
+    previous = None
+    if threading.current_thread() is threading.main_thread():
+        previous = signal.signal(signal.SIGTERM, _raise_terminated)
     try:
         return int(args.func(args) or 0)
     except CM2Error as exc:
         print(f"cm2cl: error: {with_flags(str(exc), getattr(args, 'flags', {}))}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print("cm2cl: interrupted", file=sys.stderr)
+        print("cm2cl: interrupted; nothing incomplete was written (a series resumes when the same command is run "
+              "again)", file=sys.stderr)
         return 130
+    except Terminated:
+        print("cm2cl: terminated (SIGTERM); nothing incomplete was written (a series resumes when the same command "
+              "is run again)", file=sys.stderr)
+        return 143
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+
+
+def run() -> None:
+    """The console entry point: ``main``, then exit. After Ctrl-C or SIGTERM (everything cleaned up by
+    then) it leaves without the interpreter's finalisation: with a solve's worker thread just stopped, the
+    OpenCL runtime's teardown aborted the process ("terminate called without an active exception", exit
+    134) instead of the 130 / 143 that was printed."""
+    import os
+
+    code = main()
+    if code in (130, 143):
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+    sys.exit(code)
 
 
 if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())
+    run()

@@ -35,14 +35,24 @@ def _solver(key, psf, params, dtype, backend, device, solver_kw):
         return _SOLVERS[(key, device)]
 
 
-def solve_frame(key, psf, params_dict, dtype, backend, y, device=None, solver_kw=None, x0=None):
+class Cancelled(Exception):
+    """A frame's solve stopped because the job is stopping (Ctrl-C, SIGTERM, another worker's error)."""
+
+
+def solve_frame(key, psf, params_dict, dtype, backend, y, device=None, solver_kw=None, x0=None, cancel=None):
     """One frame on this process's solver for (key, device): (volume, info). Runs on Dask workers too.
-    ``solver_kw``: ADMMSolver's layout options (padded_shape, max_memory, stream, lean); ``x0`` a warm start."""
+    ``solver_kw``: ADMMSolver's layout options (padded_shape, max_memory, stream, lean); ``x0`` a warm start;
+    ``cancel`` a threading.Event: once set, the solve stops at its next iteration (raises Cancelled)."""
     params = ADMMParams.from_kwargs(**params_dict)
     solver, lock = _solver(key, psf, params, np.dtype(dtype), backend, device, solver_kw)
+
+    def check(row):
+        if cancel.is_set():
+            raise Cancelled("the job is stopping")
+
     with lock:
         t = time.perf_counter()
-        rec = solver.solve(y, x0=x0)
+        rec = solver.solve(y, x0=x0, callback=check if cancel is not None else None)
     info = {"iterations": rec.iterations, "converged": bool(rec.info["converged"]), "stop": rec.info["stop"],
             "seconds": time.perf_counter() - t, "device": rec.info["device"],
             "objective": rec.log[-1]["objective"], "moved_bytes": rec.info["moved_bytes"]}
@@ -65,10 +75,10 @@ class FrameJob:
     def measurement(self, i: int) -> np.ndarray:
         return self.prepare(self.series.read(i))
 
-    def solve(self, i: int, device=None, x0=None):
+    def solve(self, i: int, device=None, x0=None, cancel=None):
         """Frame ``i`` on this process's solver for ``device``: (volume, info)."""
         return solve_frame(self.key, self.psf, self.params.as_dict(), self.dtype, self.backend, self.measurement(i),
-                           device, self.solver_kw, x0)
+                           device, self.solver_kw, x0, cancel)
 
 
 class Executor(Protocol):
@@ -121,23 +131,35 @@ class LocalDevices:
         for i in todo:
             q.put(i)
         errors: list = []
+        cancel = threading.Event()
 
         def worker(device):
             try:
-                while not errors:
+                while not errors and not cancel.is_set():
                     try:
                         i = q.get_nowait()
                     except queue.Empty:
                         return
-                    finish(i, *job.solve(i, device))
+                    finish(i, *job.solve(i, device, cancel=cancel))
+            except Cancelled:
+                pass
             except BaseException as exc:  # noqa: BLE001 - handed to the caller below
                 errors.append(exc)
+                cancel.set()           # the other workers stop at their next iteration
 
         threads = [threading.Thread(target=worker, args=(d,), daemon=True) for d in self.devices]
         for t in threads:
             t.start()
-        for t in threads:
-            t.join()
+        try:
+            for t in threads:
+                t.join()
+        except BaseException:
+            # Ctrl-C or SIGTERM in the main thread: the workers stop at their next iteration and are waited
+            # for, so that no thread is inside the OpenCL runtime when the interpreter exits (it aborted)
+            cancel.set()
+            for t in threads:
+                t.join()
+            raise
         if errors:
             raise errors[0]
 
