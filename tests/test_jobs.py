@@ -326,3 +326,26 @@ def test_a_stopped_local_series_says_so_and_resumes(rt, tmp_path, sig, code):
     assert err.strip().splitlines() == [err.strip().splitlines()[0]] and "resumes" in err
     r = subprocess.run(argv, capture_output=True, text=True)
     assert r.returncode == 0 and "2 frames" in r.stdout, r.stderr
+
+
+def test_a_scheduler_port_that_never_answers_is_refused_in_bounded_time(rt, tmp_path):
+    """A port that accepts the connection and never speaks (the client's own timeout did not cover it: the
+    job hung forever): one line and exit 2 within ~10 s (5 s handshake + 5 s margin), and no store."""
+    pytest.importorskip("distributed")
+    import socket
+    import threading
+    import time
+
+    srv = socket.socket()
+    srv.bind(("127.0.0.1", 0))
+    srv.listen(8)
+    held = []
+    threading.Thread(target=lambda: [held.append(srv.accept()) for _ in range(8)], daemon=True).start()
+    _series(tmp_path, n=2)
+    out = tmp_path / "o.ome.zarr"
+    t = time.time()
+    r = _job(tmp_path, out, "--scheduler", f"tcp://127.0.0.1:{srv.getsockname()[1]}")
+    took = time.time() - t
+    srv.close()
+    assert r.returncode == 2 and "no Dask scheduler answers" in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert took < 40 and not out.exists()

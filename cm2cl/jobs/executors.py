@@ -172,18 +172,37 @@ class DaskCluster:
         self.address = self.where = address
         self.devices = [None]   # the workers' own (CM2CL_DEVICE)
 
-    def client(self, timeout: str = "10s"):
+    def client(self, timeout: float = 10.0):
+        """A connected client, or a one-line error within ``timeout`` + 5 s: the client's own timeout does not
+        cover a port that accepts the connection and never answers the handshake, so the connection is made
+        in a thread that is given up on (it is a daemon) when that time has passed."""
         try:
             from distributed import Client
         except ImportError as exc:
             raise InputError("scheduler: needs Dask distributed (pip install 'cm2cl[dask]')") from exc
-        try:
-            return Client(self.address, timeout=timeout)
-        except (OSError, TimeoutError, ValueError) as exc:
+        box: dict = {}
+
+        def connect():
+            try:
+                box["client"] = Client(self.address, timeout=f"{timeout:g}s")
+            except BaseException as exc:  # noqa: BLE001 - reported below
+                box["error"] = exc
+
+        t = threading.Thread(target=connect, daemon=True, name="cm2cl-dask-connect")
+        t.start()
+        t.join(timeout + 5.0)
+        if t.is_alive():
+            raise InputError(f"scheduler '{self.address}': no Dask scheduler answers there (the port accepts "
+                             f"connections but nothing replied within {timeout + 5.0:g} s)")
+        exc = box.get("error")
+        if isinstance(exc, (OSError, TimeoutError, ValueError)):
             raise InputError(f"scheduler '{self.address}': no Dask scheduler answers there ({exc})") from exc
+        if exc is not None:
+            raise exc
+        return box["client"]
 
     def check(self, dtype) -> None:
-        self.client("5s").close()
+        self.client(5.0).close()
 
     def run(self, job: FrameJob, todo: list[int], finish: Finish, store) -> None:
         from distributed import as_completed
