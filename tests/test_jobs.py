@@ -349,3 +349,29 @@ def test_a_scheduler_port_that_never_answers_is_refused_in_bounded_time(rt, tmp_
     srv.close()
     assert r.returncode == 2 and "no Dask scheduler answers" in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
     assert took < 40 and not out.exists()
+
+
+def test_a_lost_or_overwritten_chunk_is_found_and_recomputed(rt, tmp_path, capsys):
+    """Each done frame carries its volume's SHA-256: `cm2cl verify` passes a whole store (exit 0), and after
+    frame 0's chunk is deleted and frame 1's overwritten with random bytes it names both (exit 1); the same
+    job's command then recomputes exactly those two, and the store equals the original bit for bit (they
+    used to stay "done" and read as zeros)."""
+    from cm2cl.cli import main
+
+    _series(tmp_path, n=3)
+    out = tmp_path / "s.ome.zarr"
+    assert _job(tmp_path, out).returncode == 0
+    good = np.asarray(zarr.open_group(str(out), mode="r")["0"])
+    assert main(["verify", str(out)]) == 0 and "3 match their checksums" in capsys.readouterr().out
+    chunks = sorted(p for p in (out / "0").rglob("*") if p.is_file() and not p.name.startswith("."))
+    by_frame = {int(p.relative_to(out / "0").parts[0].split(".")[0]): p for p in chunks}
+    by_frame[0].unlink()
+    by_frame[1].write_bytes(np.random.default_rng(0).bytes(by_frame[1].stat().st_size))
+    assert main(["verify", str(out)]) == 1
+    err = capsys.readouterr().err
+    assert "frame(s) 0, 1 do not match" in err and len(err.strip().splitlines()) == 1
+    r = _job(tmp_path, out)
+    assert r.returncode == 0 and "2 computed" in r.stdout and "1 already done" in r.stdout, (r.stdout, r.stderr)
+    np.testing.assert_array_equal(np.asarray(zarr.open_group(str(out), mode="r")["0"]), good)
+    assert main(["verify", str(out)]) == 0
+    assert main(["verify", str(tmp_path / "series.tif")]) == 2

@@ -31,9 +31,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _registrars():
     """One module per sub-command, each with ``register(subparsers)`` and ``command(args)``."""
-    from . import demo, devices, prepare_psf, reconstruct, simulate
+    from . import demo, devices, prepare_psf, reconstruct, simulate, verify
 
-    return [devices.register, demo.register, simulate.register, reconstruct.register, prepare_psf.register]
+    return [devices.register, demo.register, simulate.register, reconstruct.register, prepare_psf.register,
+            verify.register]
 
 
 class Terminated(BaseException):

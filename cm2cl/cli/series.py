@@ -68,7 +68,8 @@ def command(args, params: ADMMParams) -> int:
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20    # Linux: KiB -> GiB
     print(f"{out}: {s.frames} frames of {shape} {dt.name} volumes; {s.computed} computed "
           f"({s.converged} converged, {s.iterations} iterations), {s.skipped} already done; "
-          f"{time.perf_counter() - t0:.1f} s on {where}; {s.moved_bytes / 1e9:.2f} GB streamed between host and "
+          + (f"{len(store.recomputed)} whose chunk failed its checksum computed again; " if store.recomputed else "")
+          + f"{time.perf_counter() - t0:.1f} s on {where}; {s.moved_bytes / 1e9:.2f} GB streamed between host and "
           f"devices, peak host RSS {rss:.2f} GiB")
     return 0
 

@@ -4,14 +4,18 @@ frame, with the physical scale in its ``multiscales`` metadata.
 
 Resume: a frame counts as done only when its chunk is wholly written, marked by a file
 ``.cm2cl-done/NNNNNNNN`` created after the chunk; a run killed at any point leaves at most a chunk without
-a marker, which the next run recomputes. The store records a fingerprint of the job (PSF, parameters,
+a marker, which the next run recomputes. Each marker carries the SHA-256 of its frame's volume (hashed
+while writing); reopening the store for a resume checks every marked frame against it and recomputes the
+frames whose chunk was lost or changed (:meth:`FrameStore.verify`, ``cm2cl verify STORE``). The store records a fingerprint of the job (PSF, parameters,
 frames, dtype); a store of another job is refused, never mixed into. One run at a time: a lock file
 held for the run's duration refuses a second run on the same store.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
+import logging
 import os
 import shutil
 from pathlib import Path
@@ -23,6 +27,12 @@ from ..io.publish import exclusive_lock, fault_point
 
 DONE = ".cm2cl-done"
 LOCK = ".cm2cl-lock"
+log = logging.getLogger("cm2cl")
+
+
+def digest(volume, dtype) -> str:
+    """SHA-256 of a volume's bytes as the store holds them (``dtype``, C order)."""
+    return hashlib.sha256(np.ascontiguousarray(volume, dtype=np.dtype(dtype)).tobytes()).hexdigest()
 
 
 def ngff_multiscales(name: str, voxel_size_um, ndim: int = 4) -> list[dict]:
@@ -40,6 +50,8 @@ class FrameStore:
 
     def __init__(self, path: Path, array, lock_fd):
         self.path, self.array, self._lock = path, array, lock_fd
+        #: frames marked done whose chunk failed its checksum when the store was reopened (now to recompute)
+        self.recomputed: list[int] = []
 
     @classmethod
     def open(cls, path, *, fingerprint: str, n_frames: int, volume_shape, dtype, voxel_size_um=None,
@@ -74,6 +86,22 @@ class FrameStore:
         return cls._reopen(path, fingerprint, shape)
 
     @classmethod
+    def open_readonly(cls, path) -> "FrameStore":
+        """An existing store, to read and verify (no lock taken, nothing changed)."""
+        import zarr
+
+        path = Path(path)
+        try:
+            g = zarr.open_group(str(path), mode="r", zarr_format=2)
+            meta = dict(g.attrs).get("cm2cl")
+            arr = g["0"]
+        except Exception as exc:  # noqa: BLE001 - not a zarr group at all
+            raise InputError(f"store '{path}': not a cm2cl OME-Zarr store ({type(exc).__name__})") from exc
+        if not isinstance(meta, dict) or not (path / DONE).is_dir():
+            raise InputError(f"store '{path}': not a cm2cl OME-Zarr store (no cm2cl record)")
+        return cls(path, arr, None)
+
+    @classmethod
     def _reopen(cls, path: Path, fingerprint: str, shape) -> "FrameStore":
         import zarr
 
@@ -92,7 +120,12 @@ class FrameStore:
             raise InputError(f"output '{path}': holds an array of shape {tuple(arr.shape)}, this job needs {shape}")
         fd = exclusive_lock(path / LOCK, f"output '{path}': another run is writing this store; wait for it "
                                          "or choose another output")
-        return cls(path, arr, fd)
+        store = cls(path, arr, fd)
+        for i in store.verify():      # a lost or overwritten chunk: its frame is computed again
+            log.warning("output '%s': frame %d does not match its checksum; it is computed again", path, i)
+            (path / DONE / f"{i:08d}").unlink()
+            store.recomputed.append(i)
+        return store
 
     @property
     def n_frames(self) -> int:
@@ -105,16 +138,41 @@ class FrameStore:
         d = self.done()
         return [i for i in range(self.n_frames) if i not in d]
 
+    def verify(self, frames=None) -> list[int]:
+        """The frames among ``frames`` (default: every one marked done) whose stored volume does not match
+        the checksum in its marker, or cannot be read at all (a chunk deleted reads as zeros, one
+        overwritten fails to decode or reads other values). Markers written before checksums were
+        recorded are trusted."""
+        bad = []
+        for i in sorted(self.done() if frames is None else frames):
+            try:
+                want = self.info(i).get("sha256")
+            except (ValueError, OSError, AttributeError):   # a marker that is not the JSON object written
+                bad.append(i)
+                continue
+            if want is None:
+                continue
+            try:
+                got = digest(self.read(i), self.array.dtype)
+            except Exception:  # noqa: BLE001 - any failure to decode the chunk is a bad frame
+                got = None
+            if got != want:
+                bad.append(i)
+        return bad
+
     def write(self, i: int, volume, info: dict | None = None) -> None:
         """Write frame ``i``'s volume, then mark it done: the marker (carrying ``info``, the frame's
-        summary, as JSON) is renamed into place only after the whole chunk is written."""
+        summary, and the volume's SHA-256, as JSON) is renamed into place only after the whole chunk is
+        written."""
         import threading
 
-        self.array[int(i)] = np.asarray(volume, self.array.dtype)
+        vol = np.asarray(volume, self.array.dtype)
+        info = {**(info or {}), "sha256": digest(vol, self.array.dtype)}
+        self.array[int(i)] = vol
         fault_point(f"after_chunk.{int(i)}")   # tests: kill -9 between chunk and mark
         d = self.path / DONE
         tmp = d / f".{int(i):08d}.{os.getpid()}.{threading.get_ident()}"
-        tmp.write_text(json.dumps(info or {}))
+        tmp.write_text(json.dumps(info))
         os.replace(tmp, d / f"{int(i):08d}")
 
     def info(self, i: int) -> dict:
