@@ -375,3 +375,34 @@ def test_a_lost_or_overwritten_chunk_is_found_and_recomputed(rt, tmp_path, capsy
     np.testing.assert_array_equal(np.asarray(zarr.open_group(str(out), mode="r")["0"]), good)
     assert main(["verify", str(out)]) == 0
     assert main(["verify", str(tmp_path / "series.tif")]) == 2
+
+
+def test_broken_store_metadata_and_overlong_names_get_one_line(rt, tmp_path):
+    """Issue 27's tracebacks: a store whose .zarray is truncated or whose cm2cl record is not an object is
+    refused in one line (exit 2) and left alone; an output name too long for the folder once the staged
+    names beside it are counted is refused before any work, for a frame and for a series, with nothing
+    created (a frame's used to fail after the solve and keep its lock)."""
+    import shutil
+
+    psf, frames = _series(tmp_path, n=2)
+    tifffile.imwrite(tmp_path / "f.tif", frames[0])
+    good = tmp_path / "a.ome.zarr"
+    assert _job(tmp_path, good).returncode == 0
+    for name, spoil in (("trunc", lambda s: (s / "0" / ".zarray").write_text((s / "0" / ".zarray").read_text()[:20])),
+                        ("attrs", lambda s: (s / ".zattrs").write_text(json.dumps(
+                            {**json.loads((s / ".zattrs").read_text()), "cm2cl": 5})))):
+        bad = tmp_path / f"{name}.ome.zarr"
+        shutil.copytree(good, bad)
+        spoil(bad)
+        before = sorted(p.name for p in bad.rglob("*"))
+        r = _job(tmp_path, bad)
+        assert r.returncode == 2 and "Traceback" not in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+        assert "is not a" in r.stderr and sorted(p.name for p in bad.rglob("*")) == before
+    listing = sorted(p.name for p in tmp_path.iterdir())
+    long = "x" * 240
+    r = _cli("reconstruct", tmp_path / "f.tif", "--psf", tmp_path / "psf.ome.tif", "-o", tmp_path / f"{long}.ome.tif",
+             *ARGS)
+    assert r.returncode == 2 and "too long for its folder" in r.stderr and "Traceback" not in r.stderr, r.stderr
+    r = _job(tmp_path, tmp_path / f"{long}.ome.zarr")
+    assert r.returncode == 2 and "too long for its folder" in r.stderr and "Traceback" not in r.stderr, r.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == listing

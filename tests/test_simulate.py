@@ -449,6 +449,7 @@ count = 3
     (GOOD.replace("binning = 8", "binning = 1").replace("size_mm = [2.0, 2.0, 0.5]", "size_mm = [2.0, 2.0, 9.0]")
      .replace("dz_um = 250.0", "dz_um = 1.0"), "scene 'x.toml': volume: needs ~"),
     ("[volume\n", "scene 'x.toml': not valid TOML"),
+    ("a = " + "[" * 5000 + "]" * 5000 + "\n", "scene 'x.toml': nested too deeply to read"),
     (GOOD.replace("[[objects]]\ntype = \"beads\"\ndiameter_um = 10.0\ncount = 3\n", ""), "objects: the scene has no objects"),
 ])
 def test_bad_scenes_raise_one_line_input_errors(tmp_path, text, message):

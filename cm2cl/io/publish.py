@@ -62,16 +62,37 @@ def _record_of(target: Path):
     return True, doc if isinstance(doc, dict) else None
 
 
+#: the longest tag a staged name carries (a Linux pid and 8 hex digits; see OutputSet)
+_LONGEST_TAG = "4194304-ffffffff"
+
+
+def check_name_length(t: Path, names, what: str = "output") -> None:
+    """Refuse an output whose own name, or a name staged beside it while it is written (``.NAME.TAG.partial``
+    of it and of each of ``names``, the publish journal's), is longer than its folder allows, before any
+    work (it used to fail after the solve and leave its lock)."""
+    try:
+        limit = os.pathconf(t.parent, "PC_NAME_MAX")
+    except (OSError, ValueError, AttributeError):   # no pathconf (Windows) or no such folder yet
+        limit = 255
+    staged = [f".{n}.{_LONGEST_TAG}.partial" for n in [t.name, *names]] + [f".{t.name}.cm2cl-publish.{_LONGEST_TAG}.partial"]
+    longest = max(staged, key=len)
+    if len(t.name) > limit or len(longest) > limit:
+        raise InputError(f"{what} '{t.name}': a name of {len(t.name)} characters is too long for its folder "
+                         f"({limit} at most, and the files staged beside it while it is written add "
+                         f"{len(longest) - len(t.name)}); choose a name of at most {limit - (len(longest) - len(t.name))}")
+
+
 def check_output_file(target, expected_bytes: int = 0, inputs=(), what: str = "output",
                       extras: dict | None = None) -> Path:
     """Check an output file and its sidecars before any work, creating nothing (InputError naming
     ``what`` otherwise). Returns its folder."""
     t = Path(target)
-    if t.is_dir():
-        raise InputError(f"{what} '{t}': is a directory; give a file name (e.g. {t / 'volume.ome.tif'})")
     parent = t.parent
     if not parent.is_dir():
         raise InputError(f"{what} '{t}': folder '{parent}' does not exist")
+    check_name_length(t, [p.name for p in sidecar_names(t, extras).values()], what)
+    if t.is_dir():
+        raise InputError(f"{what} '{t}': is a directory; give a file name (e.g. {t / 'volume.ome.tif'})")
     check_room(t, what, expected_bytes)
     for src in inputs:
         if src is not None and Path(src).exists() and t.exists() and t.resolve() == Path(src).resolve():

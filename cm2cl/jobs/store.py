@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ..io.publish import exclusive_lock, fault_point
+from ..io.publish import check_name_length, exclusive_lock, fault_point
 
 DONE = ".cm2cl-done"
 LOCK = ".cm2cl-lock"
@@ -64,6 +64,7 @@ class FrameStore:
             raise InputError(f"output '{path}': exists and is not an OME-Zarr folder")
         if not path.parent.is_dir():
             raise InputError(f"output '{path}': folder '{path.parent}' does not exist")
+        check_name_length(path, [])
         shape = (int(n_frames),) + tuple(int(n) for n in volume_shape)
         if not path.exists():
             tmp = path.with_name(f".{path.name}.partial-{os.getpid()}")
@@ -108,14 +109,18 @@ class FrameStore:
         try:
             g = zarr.open_group(str(path), mode="r+", zarr_format=2)
             meta = dict(g.attrs).get("cm2cl")
-        except Exception as exc:  # noqa: BLE001 - not a zarr group at all
-            raise InputError(f"output '{path}': exists and is not a cm2cl OME-Zarr store; not overwritten") from exc
-        if not meta or not (path / DONE).is_dir():
+            arr = g["0"] if isinstance(meta, dict) else None
+        except PermissionError as exc:
+            raise InputError(f"output '{path}': cannot be written ({exc.strerror or exc}); resume it where it can "
+                             "be, or choose a new output") from exc
+        except Exception as exc:  # noqa: BLE001 - not a zarr group, or its metadata cannot be read
+            raise InputError(f"output '{path}': exists and is not a cm2cl OME-Zarr store (its metadata cannot be read: "
+                             f"{type(exc).__name__}: {str(exc)[:120]}); not overwritten") from exc
+        if not isinstance(meta, dict) or not (path / DONE).is_dir() or not hasattr(arr, "shape"):
             raise InputError(f"output '{path}': exists and is not a cm2cl OME-Zarr store; not overwritten")
         if meta.get("fingerprint") != fingerprint:
             raise InputError(f"output '{path}': holds another job (different PSF, parameters or frames); "
                              "refusing to mix results: choose a new output")
-        arr = g["0"]
         if tuple(arr.shape) != tuple(shape):
             raise InputError(f"output '{path}': holds an array of shape {tuple(arr.shape)}, this job needs {shape}")
         fd = exclusive_lock(path / LOCK, f"output '{path}': another run is writing this store; wait for it "

@@ -196,6 +196,8 @@ def load_scene(source) -> Scene:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise InputError(f"scene '{path.name}': not valid TOML ({exc})") from exc
+    except RecursionError as exc:
+        raise InputError(f"scene '{path.name}': nested too deeply to read") from exc
     return _build(data, str(path))
 
 
