@@ -15,14 +15,16 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
+from ..solver.params import ADMMParams
 
 __all__ = ["register", "command", "demo"]
 
 SCENE = "demo_beads"
 
 #: the demo runs the solver's defaults (weights relative to the measurement's noise level, penalties from
-#: the problem's scale, the convergence rule) with this iteration cap
-RECON = {"max_iter": 200}
+#: the problem's scale, the convergence rule and its iteration cap). (A cap of 200, from the former
+#: defaults, stopped the present ones before convergence: 24 maxima for 12 beads, against 15 converged.)
+RECON = {"max_iter": ADMMParams().max_iter}
 
 
 def register(subparsers):
@@ -34,7 +36,7 @@ def register(subparsers):
                    help="output directory (default: ./cm2cl-demo)")
     p.add_argument("--device", default=None, help="OpenCL device index or name fragment (see `cm2cl devices`)")
     p.add_argument("--seed", type=int, default=None, help="simulation seed (default: the scene's)")
-    p.add_argument("--iterations", type=int, default=RECON["max_iter"], help="ADMM iteration cap (default 200)")
+    p.add_argument("--iterations", type=int, default=RECON["max_iter"], help=f"ADMM iteration cap (default: the solver's, {RECON['max_iter']})")
     p.set_defaults(func=command)
     return p
 
