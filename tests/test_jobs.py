@@ -167,6 +167,8 @@ def test_bad_series_inputs_are_refused_before_any_output(rt, tmp_path):
     assert r.returncode == 2 and "odd.tif" in r.stderr and "differs from the first frame" in r.stderr
     r = _job(tmp_path, out, "--device", "17")
     assert r.returncode == 2 and "17" in r.stderr
+    r = _job(tmp_path, out, "--device", " ")
+    assert r.returncode == 2 and "names no device" in r.stderr and "Traceback" not in r.stderr, r.stderr
     r = _job(tmp_path, out, "--scheduler", "tcp://127.0.0.1:9")
     assert r.returncode == 2 and "no Dask scheduler answers" in r.stderr
     r = _cli("reconstruct", tmp_path / "series.tif", tmp_path / "odd.tif", "--psf", tmp_path / "psf.ome.tif",

@@ -28,6 +28,8 @@ def devices_arg(text):
             raise InputError("--device all: no OpenCL device that compiles kernels")
         return devs
     parts = [p.strip() for p in str(text).split(",") if p.strip()]
+    if not parts:
+        raise InputError(f"--device {text!r}: names no device (give an index, a name fragment or 'all'; see cm2cl devices)")
     out = [int(p) if p.isdigit() else p for p in parts]
     if len(set(map(str, out))) != len(out):
         raise InputError(f"--device '{text}': a device is listed twice")
