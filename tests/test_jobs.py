@@ -408,3 +408,15 @@ def test_broken_store_metadata_and_overlong_names_get_one_line(rt, tmp_path):
     r = _job(tmp_path, tmp_path / f"{long}.ome.zarr")
     assert r.returncode == 2 and "too long for its folder" in r.stderr and "Traceback" not in r.stderr, r.stderr
     assert sorted(p.name for p in tmp_path.iterdir()) == listing
+
+
+def test_a_nan_frame_is_named_with_its_file(rt, tmp_path):
+    """A series whose second frame holds NaN stops in one line naming that frame, its file and page;
+    the first frame stays done and resumable."""
+    psf, frames = _series(tmp_path, n=2)
+    frames[1, 3, 4] = np.nan
+    tifffile.imwrite(tmp_path / "series.tif", frames, photometric="minisblack")
+    r = _job(tmp_path, tmp_path / "n.ome.zarr")
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert "frame 1 (" in r.stderr and "series.tif" in r.stderr and "page 1" in r.stderr and "NaN" in r.stderr, r.stderr
+    assert (tmp_path / "n.ome.zarr" / ".cm2cl-done" / "00000000").exists()

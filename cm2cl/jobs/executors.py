@@ -73,7 +73,12 @@ class FrameJob:
     solver_kw: dict | None = None    #: ADMMSolver's layout options (padded_shape, max_memory, stream, lean)
 
     def measurement(self, i: int) -> np.ndarray:
-        return self.prepare(self.series.read(i))
+        """Frame ``i`` prepared; a frame that cannot be (NaN, Inf, ...) is named in the error with its file."""
+        try:
+            return self.prepare(self.series.read(i))
+        except InputError as exc:
+            f = self.series.frames[i]
+            raise InputError(f"frame {i} ('{f.path}', page {f.index}): {exc}") from exc
 
     def solve(self, i: int, device=None, x0=None, cancel=None):
         """Frame ``i`` on this process's solver for ``device``: (volume, info)."""
