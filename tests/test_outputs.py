@@ -285,6 +285,11 @@ def test_sidecars_cannot_overwrite_other_files(rt, tmp_path, capsys):
     assert "is not this output's record" in capsys.readouterr().err
     assert not (tmp_path / "simulation.ome.tif").exists()
     assert _run(tmp_path, tmp_path / "simulation.tif") == 0     # the same output again is fine
+    # a user's own OUT.cm2cl.log.csv with no record beside it is not replaced (issue 27)
+    (tmp_path / "mine.cm2cl.log.csv").write_text("my notes\n")
+    assert _run(tmp_path, tmp_path / "mine.ome.tif") == 2
+    assert "mine.cm2cl.log.csv' exists and is not this output's" in capsys.readouterr().err
+    assert (tmp_path / "mine.cm2cl.log.csv").read_text() == "my notes\n" and not (tmp_path / "mine.ome.tif").exists()
 
 
 def test_a_saved_background_is_a_member_of_the_unit_and_overwrites_no_other_file(rt, tmp_path, capsys):

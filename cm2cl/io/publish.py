@@ -104,8 +104,8 @@ def check_output_file(target, expected_bytes: int = 0, inputs=(), what: str = "o
     if exists and (doc or {}).get("output") != t.name:
         raise InputError(f"{what} '{t}': '{names['record']}' exists and is not this output's record; not overwritten")
     listed = set((doc or {}).get("files") or ())
-    for key, path in names.items():
-        if key not in SIDECARS and path.exists() and path.name not in listed:
+    for key, path in names.items():   # the log too: a user's own OUT.cm2cl.log.csv is not ours to replace
+        if key != "record" and path.exists() and path.name not in listed:
             raise InputError(f"{what} '{t}': '{path}' exists and is not this output's; not overwritten")
     return parent
 
