@@ -32,7 +32,7 @@ def _headers(args):
     return ms, ps
 
 
-def _backend(args):
+def backend_of(args):
     """(the FFT backend, the first device's runtime)."""
     from ..device import get_runtime
     from ..device.fft import resolve_backend
@@ -59,7 +59,7 @@ def check_headers(args) -> None:
         raise InputError(f"measurement '{args.measurement}': expected a 2D image, got shape {ms}")
     check_psf_shape(ps, args.psf)
     check_bin(args.bin, ms, f"measurement '{args.measurement}'")
-    backend, rt = _backend(args)
+    backend, rt = backend_of(args)
     dt = rt.check_dtype(np.dtype(args.dtype))
     nz = ps[0] if len(ps) == 3 else 1
     _, lay = layout(args, nz, tuple(n // args.bin for n in ms), dt, backend)
@@ -79,7 +79,7 @@ def dry_run(args, params: ADMMParams) -> int:
     from ..solver.memory import host_available_bytes, streamed_bytes_per_iteration
 
     ms, ps = _headers(args)
-    backend, _ = _backend(args)
+    backend, _ = backend_of(args)
     dt = np.dtype(args.dtype)
     sensor = tuple(n // args.bin for n in ms)
     nz = ps[0] if len(ps) == 3 else 1

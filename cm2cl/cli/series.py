@@ -44,12 +44,9 @@ def command(args, params: ADMMParams) -> int:
     key = fingerprint(h, params, series, dt, args.backend, prep)
     shape = (h.shape[0],) + tuple(n // args.bin for n in series.shape)
     if not args.scheduler:   # a frame that cannot fit (--stream never, --max-memory) is refused before the store
-        from ..device import get_runtime
-        from ..device.fft import resolve_backend
-        from .plan import layout
+        from .plan import backend_of, layout
 
-        backend = resolve_backend(args.backend, get_runtime(devices_arg(args.device)[0]))
-        layout(args, shape[0], shape[1:], dt, backend, solver_kw.get("padded_shape"))
+        layout(args, shape[0], shape[1:], dt, backend_of(args)[0], solver_kw.get("padded_shape"))
     record = {"what": "cm2cl reconstruction series", "psf": str(args.psf), "params": params.as_dict(),
               "frames": [f"{f.path}[{f.index}]" for f in series.frames[:1000]], "scale": wp.scale, "prep": prep}
     t0 = time.perf_counter()
