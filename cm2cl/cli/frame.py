@@ -17,6 +17,8 @@ from .progress import Progress
 
 #: --save-background writes the removed background beside the output, as a member of its unit
 BACKGROUND_SUFFIX = ".background.ome.tif"
+#: --save-psf writes the self-calibrated PSF stack beside the output, as a member of its unit
+PSF_SUFFIX = ".psf.ome.tif"
 
 
 def command(args, params: ADMMParams) -> int:
@@ -53,6 +55,11 @@ def command(args, params: ADMMParams) -> int:
         if background is not None and args.save_background:   # a member of the published unit
             io.write_tiff(outset.staged("background"), background.astype(np.float32), voxel_size_um=px,
                           extra={"what": what, "method": args.background, "measurement": str(args.measurement)})
+        if args.save_psf:
+            io.write_tiff(outset.staged("psf"), rec.psf.astype(np.float32), voxel_size_um=wp.voxel_size_um,
+                          extra={"what": "PSF stack self-calibrated on the measurement (--psf-refine), working grid",
+                                 "psf": str(args.psf), "measurement": str(args.measurement),
+                                 "psf_refine": rec.info["psf_refine"]["rounds"]})
         vol = _write(args, outset, rec, dt, wp.scale)
     _report(out, outset, rec, wp.scale, vol)
     return 0
@@ -78,6 +85,11 @@ def check_options(args) -> None:
         from ..io.background import check_background_spec
 
         check_background_spec(args.background)
+    if args.save_psf and not args.psf_refine:
+        raise InputError("--save-psf: writes the self-calibrated PSF; give --psf-refine ROUNDS as well")
+    if args.psf_refine and (args.tile or args.padding == "support"):
+        raise InputError(f"--psf-refine: not with {'--tile' if args.tile else '--padding support'} (the PSF is "
+                         "refined on the whole frame's full padded grid)")
     if args.mask:
         from ..analysis.pixels import MASKS
 
@@ -87,8 +99,10 @@ def check_options(args) -> None:
 
 
 def extras(args):
-    """The output's extra members (the background with --save-background)."""
-    return {"background": BACKGROUND_SUFFIX} if args.save_background else None
+    """The output's extra members (the background with --save-background, the PSF with --save-psf)."""
+    out = {**({"background": BACKGROUND_SUFFIX} if args.save_background else {}),
+           **({"psf": PSF_SUFFIX} if args.save_psf else {})}
+    return out or None
 
 
 def _read_measurement(args):

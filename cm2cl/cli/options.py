@@ -143,6 +143,10 @@ def add_output(r) -> None:
     g.add_argument("--save-background", action="store_true",
                    help="also write the background (the model's b, or the one removed) next to the output "
                         "(OUT.background.ome.tif)")
+    g.add_argument("--save-psf", action="store_true",
+                   help="with --psf-refine: also write the self-calibrated PSF stack the final solve used, on the "
+                        "working grid (after --bin), next to the output (OUT.psf.ome.tif); give it as --psf of a "
+                        "series of the same sample")
     g.add_argument("--dry-run", action="store_true",
                    help="print the plan (grid, device and host memory, whether it fits) from the TIFF headers, "
                         "solve and write nothing")

@@ -152,6 +152,8 @@ def reconstruct_tiled(measurement, psf, tile, halo=None, *, progress=None, **kw)
     for bad in ("normalize", "padded_shape", "padding", "x0"):
         if bad in kw:
             raise InputError(f"{bad}: not available with lateral tiles")
+    if kw.get("psf_refine"):
+        raise InputError("psf_refine: not available with lateral tiles (the PSF is refined on the whole frame)")
     plan = plan_tiles(y.shape, psf, tile, halo)
     # the whole frame's normalisation and weights (module doc)
     h = np.asarray(psf, np.float64)

@@ -123,14 +123,52 @@ def reconstruct(measurement, psf, *, dtype=np.float32, backend: str = "auto", de
         from .forward import support_padding
 
         psf, padded_shape, pad_info = support_padding(psf, fft_backend(backend, device))
-    solver = ADMMSolver(psf, prm, dtype=dtype, backend=backend, device=device,
-                        padded_shape=padded_shape, max_slab_planes=max_slab_planes, devices=devices,
-                        max_memory=max_memory, stream=stream, overlap=overlap, lean=lean)
-    rec = solver.solve(y, callback=callback, callback_every=callback_every, weights=weights, x0=x0)
+    if prm.psf_refine and pad_info is not None:
+        raise InputError("psf_refine: not with padding='support' (the refined PSF reaches past the measured "
+                         "support); use padding='full'")
+
+    def solve(h, p, P, x_start):
+        solver = ADMMSolver(h, p, dtype=dtype, backend=backend, device=device,
+                            padded_shape=P, max_slab_planes=max_slab_planes, devices=devices,
+                            max_memory=max_memory, stream=stream, overlap=overlap, lean=lean)
+        return solver, solver.solve(y, callback=callback, callback_every=callback_every, weights=weights,
+                                    x0=x_start)
+
+    if prm.psf_refine:
+        solver, rec = _refined(solve, y, psf, weights, prm, padded_shape, x0)
+    else:
+        solver, rec = solve(psf, prm, padded_shape, x0)
     rec.voxel_size_um, rec.depths_um = vs, d
     rec.info["padding"] = pad_info or {"padded_shape": list(solver.P), "support_px": None}
     rec.info["camera"] = cam
     return rec
+
+
+def _refined(solve, y, psf, weights, prm, padded_shape, x0):
+    """(solver, reconstruction) with the PSF self-calibrated (:mod:`.psf_refine`): ``prm.psf_refine`` rounds
+    of a ``psf_refine_iter``-iteration solve and a kernel fit per lenslet, each solve warm-started from the
+    last, then the solve to the stopping rule with the refined PSF; the record in ``info['psf_refine']``."""
+    from dataclasses import replace
+
+    from . import psf_refine as R
+
+    labels = R.lenslet_labels(psf)
+    w = pixel_weights(weights, y.shape)
+    inner = replace(prm, max_iter=min(prm.psf_refine_iter, prm.max_iter))
+    h = np.asarray(psf, np.float64)
+    P, x_start, rounds = padded_shape, x0, []
+    for _ in range(prm.psf_refine):
+        solver, rec = solve(h, inner, P, x_start)
+        P, x_start = solver.P, rec.volume_padded
+        b = rec.background if rec.background is not None else 0.0
+        h, k, misfit = R.refine_step(h, labels, rec.volume_padded, y - b, prm.psf_refine_radius, w)
+        rounds.append({"iterations": rec.iterations, "residual": misfit, "kernels": R.kernel_summary(k)})
+    solver, rec = solve(h, prm, P, x_start)
+    rec.psf = h
+    rec.info["psf_refine"] = {"rounds": prm.psf_refine, "lenslets": int(labels.max()),
+                              "radius_px": prm.psf_refine_radius, "overrelax": R.OVERRELAX, "per_round": rounds,
+                              "iterations_total": sum(r["iterations"] for r in rounds) + rec.iterations}
+    return solver, rec
 
 
 def _camera(y, weights, camera):

@@ -146,6 +146,22 @@ class ADMMParams:
     l1_reweight_eps: float = _param(
         0.1, {"type": "float", "min": 0, "max": 10, "exclusive": True},
         "eps of the reweighted l1 as a fraction of the volume's maximum.", flag=True)
+    # 0 by default until docs/quality.md's suite says otherwise; 4 rounds fixed its vignetted-lenslet scene
+    psf_refine: int = _param(
+        0, {"type": "int", "min": 0, "max": 20},
+        "Rounds of PSF self-calibration (cm2cl.solver.psf_refine): after a solve of psf_refine_iter iterations, "
+        "each lenslet's PSF is convolved with a small non-negative kernel fitted to the measurement (its local "
+        "blur, shift and gain), and the volume is solved again from the last one; after the rounds the final "
+        "solve runs to the stopping rule with the refined PSF (rec.psf, info['psf_refine']). For a PSF that "
+        "does not match the sample's optics (aberrations, vignetting, focus); 0: the PSF as given.",
+        unit="rounds", flag=True)
+    psf_refine_iter: int = _param(
+        150, {"type": "int", "min": 1}, "Iterations of each solve before a PSF refinement round.", unit=_ITERS,
+        flag=True)
+    psf_refine_radius: int = _param(
+        3, {"type": "int", "min": 1, "max": 15},
+        "Radius of each lenslet's refinement kernel ((2r+1) x (2r+1) taps): the largest blur or shift it models.",
+        unit="px", flag=True)
     background: str = _param(
         "model", {"type": "str", "choices": ("model", "none")},
         "'model': the data term is y = C H x + b with b a smooth, non-negative 2D background estimated jointly "

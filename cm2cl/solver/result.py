@@ -38,6 +38,8 @@ class Reconstruction:
     #: the background b of the model y = C H x + b on the sensor (My, Mx), in the measurement's units, when
     #: the data term has one (``background='model'``)
     background: np.ndarray | None = None
+    #: the PSF stack the final solve used, when it was self-calibrated (``psf_refine``), in the given PSF's units
+    psf: np.ndarray | None = None
 
     @property
     def volume(self) -> np.ndarray:

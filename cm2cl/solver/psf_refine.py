@@ -1,0 +1,180 @@
+"""Self-calibration of the PSF stack from the measurement: a small kernel per lenslet, fitted to the data.
+
+A measured or modelled PSF stack never matches the sample's optics exactly (aberrations that vary over
+the field, vignetted outer lenslets, a blur or a shift of focus), and the least-squares objective then
+explains the misfit with spurious emitters. The model here is that the true PSF of lenslet j is the given
+one convolved with an unknown small kernel k_j (a local blur, shift and gain):
+
+    h_true = sum_j k_j (*) (h . m_j)
+
+with m_j the lenslet's footprint on the sensor (:func:`lenslet_labels`). Given a reconstruction x and its
+background b, the kernels are the non-negative least-squares fit, weighted like the data term, of
+
+    y - b  =  C sum_j k_j (*) F_j,     F_j = sum_i (h_i . m_j) (*) x_i   (on the padded grid)
+
+with a ridge towards the identity kernel (:func:`fit_kernels`); the PSF is updated
+(:func:`apply_kernels`), the volume re-solved from the last one, and so on for a few rounds
+(:func:`cm2cl.solver.api.reconstruct`, ``psf_refine``). The volume absorbs part of any mismatch, so a
+fitted kernel under-corrects: each update is over-relaxed, k = max(delta + beta (k_fit - delta), 0).
+
+A PSF whose footprint is not a few lenslets (a diffuser's caustic: more than ``MAX_LENSLETS`` pieces) gets
+one kernel for the whole stack. All of it runs on the host in float64.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import fft as sfft
+from scipy import ndimage, optimize, signal
+from scipy.linalg import cho_factor, solve_triangular
+
+from .forward import centered_psf, crop_offsets
+
+#: a pixel belongs to a lenslet's footprint where some plane's PSF, normalised to its peak, exceeds this
+FOOTPRINT_LEVEL = 0.02
+#: footprint pieces smaller than this (pixels) are noise, not lenslets
+MIN_PIECE_PX = 4
+#: more pieces than this: the PSF is not a lenslet array (a diffuser), and one kernel serves the stack
+MAX_LENSLETS = 25
+#: the ridge towards the identity kernel, relative to the mean diagonal of the normal equations
+RIDGE = 1e-3
+#: over-relaxation of each kernel update (measured on docs/quality.md's mismatch scenes: 1.7 converged in
+#: 4-6 rounds where 1.0 needed more than 10)
+OVERRELAX = 1.7
+#: design-matrix entries per chunk of sensor rows (memory of the normal equations' accumulation)
+CHUNK_ENTRIES = 1 << 23
+
+
+def lenslet_labels(psf: np.ndarray) -> np.ndarray:
+    """(My, Mx) labels 1..n: each sensor pixel assigned to the nearest lenslet footprint of the stack
+    (pieces of its peak-normalised maximum over depth above FOOTPRINT_LEVEL); all ones where the footprint
+    has more than MAX_LENSLETS pieces or none."""
+    psf = np.asarray(psf, np.float64)
+    peak = psf.reshape(psf.shape[0], -1).max(axis=1)
+    norm = psf / np.where(peak > 0, peak, 1.0)[:, None, None]
+    lab, n = ndimage.label(norm.max(axis=0) > FOOTPRINT_LEVEL)
+    if n:
+        sizes = ndimage.sum_labels(np.ones_like(lab), lab, index=np.arange(1, n + 1))
+        keep = np.flatnonzero(sizes >= MIN_PIECE_PX) + 1
+        lab = np.where(np.isin(lab, keep), np.searchsorted(keep, lab) + 1, 0)
+        n = keep.size
+    if n == 0 or n > MAX_LENSLETS:
+        return np.ones(psf.shape[1:], np.int32)
+    # every pixel to its nearest piece, so that the pieces together are the whole sensor
+    _, (iy, ix) = ndimage.distance_transform_edt(lab == 0, return_indices=True)
+    return lab[iy, ix].astype(np.int32)
+
+
+def lenslet_images(psf: np.ndarray, labels: np.ndarray, volume_padded: np.ndarray) -> np.ndarray:
+    """(n, Py, Px): F_j = sum_i (h_i . m_j) (*) x_i on the padded grid (circular, optical axis at the
+    sensor centre, as the solver's forward model), one per lenslet label j = 1..n."""
+    P = volume_padded.shape[1:]
+    X = sfft.rfft2(np.asarray(volume_padded, np.float64), workers=-1)
+    n = int(labels.max())
+    out = np.empty((n,) + tuple(P))
+    for j in range(n):
+        hj = centered_psf(np.asarray(psf, np.float64) * (labels == j + 1), P)
+        out[j] = sfft.irfft2((sfft.rfft2(hj, workers=-1) * X).sum(axis=0), s=P, workers=-1)
+    return out
+
+
+def _taps(radius: int):
+    r = np.arange(-radius, radius + 1)
+    return [(dy, dx) for dy in r for dx in r]
+
+
+def fit_kernels(images: np.ndarray, target: np.ndarray, sensor_shape, radius: int, weights=None,
+                ridge: float = RIDGE) -> np.ndarray:
+    """(n, 2r+1, 2r+1) non-negative kernels k_j minimising
+    sum_p w_p (target_p - (C sum_j k_j (*) F_j)_p)^2 + lam sum_j ||k_j - delta||^2,
+    lam = ridge x the mean diagonal of the normal equations; ``images`` are the F_j on the padded grid
+    (:func:`lenslet_images`), ``target`` (My, Mx) the measurement less its background, ``weights`` the
+    data term's (None: ones). Kernel index [r + dy, r + dx] is the weight of the shift (dy, dx)."""
+    n = images.shape[0]
+    My, Mx = sensor_shape
+    oy, ox = crop_offsets(sensor_shape, images.shape[1:])
+    taps = _taps(radius)
+    if min(oy, ox) < radius:
+        raise ValueError(f"psf_refine: the padded grid leaves {min(oy, ox)} px around the sensor, "
+                         f"less than the kernel radius {radius}")
+    ncol = n * len(taps)
+    w = np.ones((My, Mx)) if weights is None else np.asarray(weights, np.float64)
+    G = np.zeros((ncol, ncol))
+    b = np.zeros(ncol)
+    rows = max(1, CHUNK_ENTRIES // (ncol * Mx))
+    for r0 in range(0, My, rows):
+        r1 = min(My, r0 + rows)
+        A = np.empty(((r1 - r0) * Mx, ncol))
+        c = 0
+        for j in range(n):
+            for dy, dx in taps:   # (k (*) F)(p) = sum_s k(s) F(p - s)
+                A[:, c] = images[j, oy + r0 - dy:oy + r1 - dy, ox - dx:ox + Mx - dx].ravel()
+                c += 1
+        sw = np.sqrt(w[r0:r1].ravel())
+        A *= sw[:, None]
+        G += A.T @ A
+        b += A.T @ (sw * target[r0:r1].ravel())
+    lam = ridge * max(np.trace(G) / ncol, 1e-300)
+    delta = np.zeros((n, len(taps)))
+    delta[:, len(taps) // 2] = 1.0
+    G[np.diag_indices(ncol)] += lam
+    b += lam * delta.ravel()
+    # min_k>=0 k'Gk - 2b'k  =  min ||L'k - L^-1 b||^2 with G = L L'
+    L, _ = cho_factor(G, lower=True)
+    L = np.tril(L)
+    k, _ = optimize.nnls(L.T, solve_triangular(L, b, lower=True), maxiter=50 * ncol)
+    return k.reshape(n, 2 * radius + 1, 2 * radius + 1)
+
+
+def relax(kernels: np.ndarray, beta: float = OVERRELAX) -> np.ndarray:
+    """The kernels scaled to mean sum 1 (the volume carries the overall scale), then over-relaxed away
+    from the identity: max(delta + beta (k - delta), 0)."""
+    k = kernels / max(kernels.sum(axis=(1, 2)).mean(), 1e-300)
+    r = k.shape[1] // 2
+    delta = np.zeros_like(k)
+    delta[:, r, r] = 1.0
+    return np.maximum(delta + beta * (k - delta), 0.0)
+
+
+def apply_kernels(psf: np.ndarray, labels: np.ndarray, kernels: np.ndarray) -> np.ndarray:
+    """sum_j k_j (*) (h . m_j) per plane (zero outside the sensor), clipped at 0 and scaled to the given
+    stack's total light."""
+    psf = np.asarray(psf, np.float64)
+    out = np.zeros_like(psf)
+    for j, k in enumerate(kernels):
+        hj = psf * (labels == j + 1)
+        for i in range(psf.shape[0]):
+            out[i] += signal.fftconvolve(hj[i], k, mode="same")
+    out = np.maximum(out, 0.0)
+    return out * (psf.sum() / max(out.sum(), 1e-300))
+
+
+def kernel_summary(kernels: np.ndarray) -> list[dict]:
+    """Per kernel: its sum (gain), its centroid shift (dy, dx) in px and RMS width in px, for the record."""
+    r = kernels.shape[1] // 2
+    yy, xx = np.mgrid[-r:r + 1, -r:r + 1]
+    out = []
+    for k in kernels:
+        s = float(k.sum())
+        cy, cx = (float((k * yy).sum() / s), float((k * xx).sum() / s)) if s > 0 else (0.0, 0.0)
+        width = float(np.sqrt((k * ((yy - cy) ** 2 + (xx - cx) ** 2)).sum() / s)) if s > 0 else 0.0
+        out.append({"gain": s, "shift_px": [cy, cx], "rms_width_px": width})
+    return out
+
+
+def refine_step(psf, labels, volume_padded, target, radius: int, weights=None, beta: float = OVERRELAX):
+    """One round: (the refined PSF stack, the kernels applied, the relative weighted misfit
+    ||target - C H x|| / ||target|| before it) from a reconstruction's padded volume and the measurement
+    less its background."""
+    F = lenslet_images(psf, labels, volume_padded)
+    M = psf.shape[1:]
+    oy, ox = crop_offsets(M, F.shape[1:])
+    w = np.ones(M) if weights is None else np.asarray(weights, np.float64)
+    model = F.sum(axis=0)[oy:oy + M[0], ox:ox + M[1]]
+    misfit = float(np.sqrt(np.sum(w * (target - model) ** 2) / max(np.sum(w * target ** 2), 1e-300)))
+    k = relax(fit_kernels(F, target, M, radius, weights), beta)
+    return apply_kernels(psf, labels, k), k, misfit
+
+
+__all__ = ["lenslet_labels", "lenslet_images", "fit_kernels", "relax", "apply_kernels", "kernel_summary",
+           "refine_step"]
