@@ -131,6 +131,30 @@ def test_bad_geometry_and_files_are_one_line_input_errors(tmp_path):
         read_tiff(tmp_path / "bad.tif")
 
 
+@pytest.mark.parametrize("old, new, msg", [
+    ('PhysicalSizeX="2.0"', 'PhysicalSizeX="abc"', "PhysicalSizeX is 'abc', not a number"),
+    ('PhysicalSizeZ="10.0"', 'PhysicalSizeZ="inf"', "PhysicalSizeZ is 'inf', not a finite number"),
+    ('PositionZ="0.0"', 'PositionZ="deep"', "Plane PositionZ is 'deep', not a number"),
+    ('TheZ="1"', 'TheZ="1.5"', "Plane TheZ is '1.5', not a number"),
+    ('&quot;shape&quot;: [3, 4, 5]', '&quot;shape&quot;: &quot;345&quot;', "has shape '345', not a list of positive integers"),
+    ('&quot;shape&quot;: [3, 4, 5]', '&quot;shape&quot;: [3, 4, true]', "not a list of positive integers")])
+def test_ome_metadata_of_the_wrong_type_is_a_one_line_error(tmp_path, old, new, msg):
+    """OME-XML whose lengths, positions, plane indices or recorded shape are not numbers (issue 27: they
+    were tracebacks) is refused with one line naming the file and the value."""
+    from cm2cl.io.tiff import tiff_depths
+
+    p = tmp_path / "v.ome.tif"
+    write_tiff(p, np.ones((3, 4, 5), np.float32), voxel_size_um=(10.0, 2.0, 2.0), depths_um=[0.0, 10.0, 20.0])
+    with tifffile.TiffFile(p) as tf:
+        xml = tf.pages[0].description
+    assert old in xml, xml[:2000]
+    tifffile.tiffcomment(p, xml.replace(old, new, 1).encode("utf-8"))
+    for read in (read_tiff,) if "shape" in old else (read_tiff, tiff_depths):   # depths need no shape
+        with pytest.raises(InputError) as info:
+            read(p)
+        assert msg in str(info.value) and "v.ome.tif" in str(info.value) and "\n" not in str(info.value)
+
+
 def test_tiff_stem():
     assert str(tiff_stem("a/vol.ome.tif")) == "a/vol" and str(tiff_stem("vol.TIFF")) == "vol"
     assert str(tiff_stem("v.1.tif")) == "v.1"

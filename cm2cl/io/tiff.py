@@ -121,6 +121,31 @@ def _rational(value) -> float:
     return float(num) / float(den) if den else 0.0
 
 
+class _BadOME(ValueError):
+    """OME-XML whose values are not what the schema says (a length or position that is no number)."""
+
+
+def _num(value, what: str, kind=float):
+    """``value`` (an OME attribute) as a finite ``kind``, or _BadOME naming ``what``."""
+    try:
+        v = kind(value)
+    except (TypeError, ValueError):
+        raise _BadOME(f"{what} is {value!r}, not a number") from None
+    if not np.isfinite(v):
+        raise _BadOME(f"{what} is {value!r}, not a finite number")
+    return v
+
+
+def _geometry(path, ome: str, ndim: int):
+    """:func:`_ome_geometry` of a file's OME-XML, unreadable or wrong-typed metadata as one InputError."""
+    try:
+        return _ome_geometry(ome, ndim)
+    except ET.ParseError as exc:
+        raise InputError(f"'{path}': its OME-XML is not readable ({exc})") from exc
+    except _BadOME as exc:
+        raise InputError(f"'{path}': its OME-XML {exc}") from None
+
+
 def _ome_geometry(xml_text: str, ndim: int):
     """(voxel sizes or None, depths or None, cm2cl record or None) from OME-XML."""
     root = ET.fromstring(xml_text)
@@ -147,7 +172,7 @@ def _ome_geometry(xml_text: str, ndim: int):
         if v is None:
             return None
         scale = _UM_PER.get(pixels.get(attr + "Unit", "µm"))
-        return float(v) * scale if scale else None
+        return _num(v, attr) * scale if scale else None
 
     depths = None
     planes = pixels.findall(q("Plane"), ns)
@@ -158,7 +183,7 @@ def _ome_geometry(xml_text: str, ndim: int):
             if scale is None:
                 by_z = {}
                 break
-            by_z.setdefault(int(p.get("TheZ", 0)), float(p.get("PositionZ")) * scale)
+            by_z.setdefault(_num(p.get("TheZ", 0), "Plane TheZ", int), _num(p.get("PositionZ"), "Plane PositionZ") * scale)
         if by_z and sorted(by_z) == list(range(len(by_z))):
             depths = [by_z[z] for z in range(len(by_z))]
     dx, dy, dz = length("PhysicalSizeX"), length("PhysicalSizeY"), length("PhysicalSizeZ")
@@ -188,11 +213,11 @@ def _recorded_shape(path, ome: str | None, shape: tuple) -> tuple:
     wide volumes), else ``shape`` itself."""
     if not ome:
         return shape
-    try:
-        record = _ome_geometry(ome, len(shape))[2]
-    except ET.ParseError as exc:
-        raise InputError(f"'{path}': its OME-XML is not readable ({exc})") from exc
-    stored = tuple(int(n) for n in (record or {}).get("shape") or ())
+    record = _geometry(path, ome, len(shape))[2]
+    shp = (record or {}).get("shape") or ()
+    if shp and not isinstance(shp, list) or not all(isinstance(n, int) and not isinstance(n, bool) and n > 0 for n in shp):
+        raise InputError(f"'{path}': the cm2cl record in its OME-XML has shape {shp!r}, not a list of positive integers")
+    stored = tuple(shp)
     return stored if stored and int(np.prod(stored)) == int(np.prod(shape)) else shape
 
 
@@ -227,10 +252,7 @@ def tiff_depths(path):
         raise InputError(f"'{path}': not a readable TIFF file ({exc})") from exc
     if not ome:
         return None
-    try:
-        return _ome_geometry(ome, ndim)[1]
-    except ET.ParseError as exc:
-        raise InputError(f"'{path}': its OME-XML is not readable ({exc})") from exc
+    return _geometry(path, ome, ndim)[1]
 
 
 def read_tiff(path):
@@ -261,8 +283,10 @@ def read_tiff(path):
         raise InputError(f"'{path}': not a readable TIFF file ({exc})") from exc
     if ome:
         arr = arr.reshape(_recorded_shape(path, ome, arr.shape))   # axes of length 1 that tifffile dropped
-        vs, depths, record = _ome_geometry(ome, arr.ndim)
+        vs, depths, record = _geometry(path, ome, arr.ndim)
         extra = (record or {}).get("extra") or {}
+        if not isinstance(extra, dict):
+            raise InputError(f"'{path}': the cm2cl record in its OME-XML has extra {type(extra).__name__}, not a mapping")
         return arr, {"voxel_size_um": vs, "unit": "um" if vs else "pixel", "depths_um": depths, "extra": extra}
     record = None
     for text in (ij.get("Info"), desc):           # ImageJ hyperstacks written by cm2cl < 0.2
