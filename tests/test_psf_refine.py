@@ -124,7 +124,12 @@ def test_refinement_leaves_a_matching_psf_alone(rt):
     psf = Q.array_psf(nz, shape)
     beads = Q.place_beads(12, nz, shape, 5, margin=10)
     y = Q.object_image(psf, Q.bead_volume(beads, np.ones(len(beads)), nz, shape))
-    rec = cm2cl.reconstruct(y, psf, psf_refine=2, psf_refine_iter=150, max_iter=300, background="none")
+    rows = []
+    rec = cm2cl.reconstruct(y, psf, psf_refine=2, psf_refine_iter=150, max_iter=300, background="none",
+                            callback=rows.append)
+    # the callback's iterations count on across the rounds (a progress bar's total is all of them)
+    its = [r["iter"] for r in rows]
+    assert its == list(range(1, len(its) + 1)) and its[-1] == rec.info["psf_refine"]["iterations_total"]
     for k in rec.info["psf_refine"]["per_round"][-1]["kernels"]:
         assert abs(k["gain"] - 1) < 0.15 and np.hypot(*k["shift_px"]) < 0.25 and k["rms_width_px"] < 0.6, k
     assert Q.score_beads(rec.volume, beads)["recall"] == 1.0

@@ -172,7 +172,8 @@ def _solve(args, y, wp, weights, params: ADMMParams, dt):
     devs = devices_arg(args.device)
     if args.tile:
         return _tiled(args, y, wp, dt, devs, weights, params)
-    progress = Progress(params.max_iter, args.quiet)
+    rounds = params.psf_refine * min(params.psf_refine_iter, params.max_iter)
+    progress = Progress(params.max_iter + rounds, args.quiet, every=args.progress_every)
     try:
         return reconstruct(y, wp.h, dtype=dt, backend=args.backend, device=devs[0],
                            devices=devs if len(devs) > 1 else None, **layout_options(args), weights=weights,

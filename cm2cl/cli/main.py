@@ -25,8 +25,38 @@ def build_parser() -> argparse.ArgumentParser:
     for register in _registrars():
         register(sub)
     for command in sub.choices.values():   # library errors name parameters; the user typed options
+        _add_logging(command)
         command.set_defaults(flags=flag_names(command))
     return p
+
+
+#: --log-level choices
+LOG_LEVELS = ("debug", "info", "warning", "error")
+
+
+def _add_logging(command) -> None:
+    g = command.add_argument_group("logging")
+    g.add_argument("-v", "--verbose", action="count", default=0,
+                   help="log what cm2cl does on stderr: -v info (plans, solves, devices), -vv debug")
+    g.add_argument("--log-level", choices=LOG_LEVELS, default=None,
+                   help="level of the cm2cl logger's messages on stderr (default warning; overrides -v)")
+
+
+def _log_handler(args):
+    """A stderr handler on the ``cm2cl`` logger at the level -v / --log-level ask for (removed after the
+    command, so that repeated calls of :func:`main` do not stack handlers)."""
+    import logging
+
+    level = (getattr(logging, args.log_level.upper()) if getattr(args, "log_level", None)
+             else {0: logging.WARNING, 1: logging.INFO}.get(getattr(args, "verbose", 0), logging.DEBUG))
+    logger = logging.getLogger("cm2cl")
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter("cm2cl: %(levelname)s: %(name)s: %(message)s"))
+    handler.setLevel(level)
+    previous = logger.level
+    logger.addHandler(handler)
+    logger.setLevel(min(level, previous) if previous else level)
+    return logger, handler, previous
 
 
 def _registrars():
@@ -55,6 +85,7 @@ def main(argv=None) -> int:
     previous = None
     if threading.current_thread() is threading.main_thread():
         previous = signal.signal(signal.SIGTERM, _raise_terminated)
+    logger, handler, level = _log_handler(args)
     try:
         return int(args.func(args) or 0)
     except CM2Error as exc:
@@ -69,6 +100,8 @@ def main(argv=None) -> int:
               "is run again)", file=sys.stderr)
         return 143
     finally:
+        logger.removeHandler(handler)
+        logger.setLevel(level)
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
 

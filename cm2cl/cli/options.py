@@ -130,6 +130,20 @@ def add_series(r) -> None:
                         "devices; pin each worker to a device with CM2CL_DEVICE")
 
 
+def _seconds(text: str) -> float:
+    """A finite number of seconds >= 0 (argparse type)."""
+    import argparse
+    import math
+
+    try:
+        v = float(text)
+    except ValueError:
+        v = float("nan")
+    if not math.isfinite(v) or v < 0:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number of seconds >= 0")
+    return v
+
+
 def add_output(r) -> None:
     g = r.add_argument_group("output")
     g.add_argument("-o", "--output", required=True,
@@ -150,6 +164,9 @@ def add_output(r) -> None:
     g.add_argument("--dry-run", action="store_true",
                    help="print the plan (grid, device and host memory, whether it fits) from the TIFF headers, "
                         "solve and write nothing")
+    g.add_argument("--progress-every", type=_seconds, default=30.0, metavar="SECONDS",
+                   help="when stderr is not a terminal (batch logs, pipes): a progress line every SECONDS "
+                        "(iteration or frame, objective, time left; default 30, 0: none)")
     g.add_argument("--quiet", action="store_true",
                    help="no progress bar (there is none either when stderr is not a terminal)")
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 
 from .. import validate
@@ -10,6 +12,8 @@ from ..device.runtime import get_runtime
 from ..errors import InputError
 from .admm import ADMMSolver, pixel_weights
 from .params import check_keywords, with_parameters
+
+log = logging.getLogger(__name__)
 
 #: reconstruct()'s docstring; the solver parameters' entries are made from their declaration (ADMMParams)
 _DOC = """Reconstruct a 3D volume from one CM2 measurement (paper Eq. 4) on an OpenCL device.
@@ -73,7 +77,8 @@ _DOC = """Reconstruct a 3D volume from one CM2 measurement (paper Eq. 4) on an O
         fill the sensor. 'support': M + K - 1 with K the PSF stack's measured support (99.9999% of its
         light; the tails beyond are dropped, ``rec.info['padding']`` says how much and the voxels saved).
     callback, callback_every : callable, int, optional
-        ``callback(row)`` with each log row (a dict) every ``callback_every`` iterations.
+        ``callback(row)`` with each log row (a dict) every ``callback_every`` iterations; with ``psf_refine``,
+        the rows of every round, ``row['iter']`` counting on across them.
     x0 : (nz, My, Mx) or (nz, Py, Px) array, optional
         A warm start in the volume's units (e.g. the previous frame's ``rec.volume``): x and its splits
         start there instead of at zero.
@@ -127,12 +132,16 @@ def reconstruct(measurement, psf, *, dtype=np.float32, backend: str = "auto", de
         raise InputError("psf_refine: not with padding='support' (the refined PSF reaches past the measured "
                          "support); use padding='full'")
 
+    done = [0]   # iterations of the refinement's rounds before this solve: the callback's rows count on
+
     def solve(h, p, P, x_start):
         solver = ADMMSolver(h, p, dtype=dtype, backend=backend, device=device,
                             padded_shape=P, max_slab_planes=max_slab_planes, devices=devices,
                             max_memory=max_memory, stream=stream, overlap=overlap, lean=lean)
-        return solver, solver.solve(y, callback=callback, callback_every=callback_every, weights=weights,
-                                    x0=x_start)
+        cb = callback if callback is None or not done[0] else (lambda row: callback({**row, "iter": row["iter"] + done[0]}))
+        rec = solver.solve(y, callback=cb, callback_every=callback_every, weights=weights, x0=x_start)
+        done[0] += rec.iterations
+        return solver, rec
 
     if prm.psf_refine:
         solver, rec = _refined(solve, y, psf, weights, prm, padded_shape, x0)
@@ -163,6 +172,9 @@ def _refined(solve, y, psf, weights, prm, padded_shape, x0):
         b = rec.background if rec.background is not None else 0.0
         h, k, misfit = R.refine_step(h, labels, rec.volume_padded, y - b, prm.psf_refine_radius, w)
         rounds.append({"iterations": rec.iterations, "residual": misfit, "kernels": R.kernel_summary(k)})
+        gains = [q["gain"] for q in rounds[-1]["kernels"]]
+        log.info("PSF refinement round %d of %d: %d iterations, misfit %.4f before it; %d kernels, gains %.2f-%.2f",
+                 len(rounds), prm.psf_refine, rec.iterations, misfit, len(gains), min(gains), max(gains))
     solver, rec = solve(h, prm, P, x_start)
     rec.psf = h
     rec.info["psf_refine"] = {"rounds": prm.psf_refine, "lenslets": int(labels.max()),
