@@ -15,3 +15,4 @@ logging.getLogger("cm2cl").addHandler(logging.NullHandler())
 
 from .errors import CM2Error, DeviceError, InputError, KernelBuildError  # noqa: E402,F401
 from .solver import ForwardModel, Reconstruction, reconstruct  # noqa: E402,F401
+from .jobs.series import reconstruct_series  # noqa: E402,F401

@@ -8,7 +8,8 @@ from .executors import DaskCluster, FrameJob, InOrder, LocalDevices, executor_fo
 from .frames import FrameSeries
 from .run import JobSummary, run_series
 from .store import FrameStore
+from .series import reconstruct_series
 from .tiles import plan_tiles, reconstruct_tiled
 
 __all__ = ["FrameSeries", "FrameStore", "JobSummary", "run_series", "plan_tiles", "reconstruct_tiled", "FrameJob",
-           "executor_for", "InOrder", "LocalDevices", "DaskCluster"]
+           "executor_for", "InOrder", "LocalDevices", "DaskCluster", "reconstruct_series"]

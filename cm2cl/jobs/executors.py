@@ -6,6 +6,7 @@ is built once per (job, device) and reused for every frame it takes (its PSF spe
 
 from __future__ import annotations
 
+import itertools
 import queue
 import threading
 import time
@@ -173,14 +174,24 @@ class DaskCluster:
     """The frames as tasks on a Dask distributed scheduler (``tcp://host:port``): one solver per worker
     process, cached across tasks; pin each worker to a device with ``CM2CL_DEVICE`` in its environment."""
 
-    def __init__(self, address: str):
-        self.address = self.where = address
+    #: frames in flight per worker: enough to keep each busy while the next frame is read and sent, few enough
+    #: that a long series is not read and held in the client's memory at once (backpressure)
+    IN_FLIGHT_PER_WORKER = 2
+
+    def __init__(self, address):
+        """``address``: a scheduler's address (``tcp://host:port``), or a connected ``distributed.Client``
+        (which the job uses and leaves open)."""
+        self.given = None if isinstance(address, str) else address
+        self.address = self.where = (address if self.given is None else
+                                     getattr(getattr(address, "scheduler", None), "address", None) or repr(address))
         self.devices = [None]   # the workers' own (CM2CL_DEVICE)
 
     def client(self, timeout: float = 10.0):
         """A connected client, or a one-line error within ``timeout`` + 5 s: the client's own timeout does not
         cover a port that accepts the connection and never answers the handshake, so the connection is made
         in a thread that is given up on (it is a daemon) when that time has passed."""
+        if self.given is not None:
+            return self.given
         try:
             from distributed import Client
         except ImportError as exc:
@@ -207,26 +218,54 @@ class DaskCluster:
         return box["client"]
 
     def check(self, dtype) -> None:
-        self.client(5.0).close()
+        c = self.client(5.0)
+        if self.given is None:
+            c.close()
+
+    def in_flight(self, client) -> int:
+        """How many frames are submitted at a time: IN_FLIGHT_PER_WORKER per worker, at least 2."""
+        try:
+            workers = len(client.scheduler_info().get("workers", {}))
+        except Exception:  # noqa: BLE001 - an old or busy scheduler: assume one worker
+            workers = 1
+        return max(2, self.IN_FLIGHT_PER_WORKER * workers)
 
     def run(self, job: FrameJob, todo: list[int], finish: Finish, store) -> None:
+        """Submit a bounded number of frames (:meth:`in_flight`), the next one as each finishes: a frame is
+        read only when it is sent, so the client holds a few frames, not the series."""
         from distributed import as_completed
 
         client = self.client()
         try:
             psf_f = client.scatter(np.asarray(job.psf), broadcast=True)
             pd = job.params.as_dict()
-            futs = {client.submit(solve_frame, job.key, psf_f, pd, job.dtype, job.backend, job.measurement(i),
-                                  solver_kw=job.solver_kw, pure=False): i for i in todo}
-            for fut in as_completed(list(futs)):
-                finish(futs[fut], *fut.result())
+            pending = iter(todo)
+            futs: dict = {}
+            done = as_completed()
+
+            def submit(i):
+                f = client.submit(solve_frame, job.key, psf_f, pd, job.dtype, job.backend, job.measurement(i),
+                                  solver_kw=job.solver_kw, pure=False)
+                futs[f] = i
+                done.add(f)
+
+            for i in itertools.islice(pending, self.in_flight(client)):
+                submit(i)
+            self.peak_in_flight = len(futs)
+            for fut in done:
+                finish(futs.pop(fut), *fut.result())
+                nxt = next(pending, None)
+                if nxt is not None:
+                    submit(nxt)
+                    self.peak_in_flight = max(self.peak_in_flight, len(futs))
         finally:
-            client.close()
+            if self.given is None:
+                client.close()
 
 
-def executor_for(devices=(None,), scheduler: str | None = None, warm_start: bool = False) -> Executor:
-    """The executor of a job: in order on one device with ``warm_start``, else on ``scheduler`` when given,
-    else on the local ``devices``."""
+def executor_for(devices=(None,), scheduler=None, warm_start: bool = False) -> Executor:
+    """The executor of a job: in order on one device with ``warm_start``, else on ``scheduler`` (an address
+    or a ``distributed.Client``) when given, else on the local ``devices``."""
     devices = list(devices)
     if warm_start:
         if scheduler or len(devices) != 1:

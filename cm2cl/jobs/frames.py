@@ -105,3 +105,30 @@ class FrameSeries:
             st = Path(f.path).stat()
             h.update(f"{Path(f.path).resolve()}|{f.index}|{st.st_size}|{st.st_mtime_ns}\n".encode())
         return h.hexdigest()
+
+
+class ArraySeries:
+    """Frames held in memory: a (T, My, Mx) array (or a sequence of (My, Mx) arrays), with what a job needs
+    of :class:`FrameSeries` (``len``, ``shape``, ``read``, ``identity``, ``frames``)."""
+
+    def __init__(self, frames, what: str = "frames"):
+        a = np.asarray(frames)
+        if a.ndim != 3 or 0 in a.shape:
+            raise InputError(f"{what}: expected a (T, My, Mx) array of frames, got shape {a.shape}")
+        if not (np.issubdtype(a.dtype, np.floating) or np.issubdtype(a.dtype, np.integer)):
+            raise InputError(f"{what}: expected real numbers, got dtype {a.dtype}")
+        self.array, self.shape = a, tuple(a.shape[1:])
+        self.frames = [Frame(f"<array {what}>", i, self.shape, a.dtype.name) for i in range(a.shape[0])]
+
+    def __len__(self) -> int:
+        return self.array.shape[0]
+
+    def read(self, i: int) -> np.ndarray:
+        return self.array[i]
+
+    def identity(self) -> str:
+        """A digest of the frames' values (other values make a different job)."""
+        h = hashlib.sha256(f"{self.array.shape}|{self.array.dtype}".encode())
+        for f in self.array:
+            h.update(np.ascontiguousarray(f).tobytes())
+        return h.hexdigest()

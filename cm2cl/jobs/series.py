@@ -1,0 +1,108 @@
+"""A series job from Python in one call: :func:`reconstruct_series`, the frames of a time series into one
+OME-Zarr store, resumable like ``cm2cl reconstruct FRAMES -o OUT.ome.zarr`` (a rerun of the same call skips
+the frames done and recomputes any whose chunk fails its checksum), on the local devices, in order with a
+warm start, or on a Dask cluster through a ``distributed.Client``."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .. import validate
+from ..errors import InputError
+from ..solver.params import check_keywords
+from .executors import executor_for
+from .frames import ArraySeries, FrameSeries
+from .run import JobSummary, fingerprint, run_series
+from .store import FrameStore
+
+
+def reconstruct_series(frames, psf, output, *, client=None, devices=None, warm_start: bool = False,
+                       dtype=np.float32, backend: str = "auto", offset=None, voxel_size_um=None, depths_um=None,
+                       padded_shape=None, max_memory=None, stream="auto", lean="auto", progress=None,
+                       **params) -> JobSummary:
+    """Reconstruct every frame of a series into the OME-Zarr store ``output`` (created, or resumed).
+
+    Parameters
+    ----------
+    frames : paths, a glob, a folder, a :class:`~cm2cl.jobs.FrameSeries`, or a (T, My, Mx) array
+        The measurements, read one at a time (files) or held (an array).
+    psf : (nz, My, Mx) array or the path of a PSF TIFF
+        On the frames' sensor grid; a TIFF's voxel size and depths label the store unless given.
+    output : path of the store (``*.ome.zarr``); its folder must exist.
+    client : ``distributed.Client`` or scheduler address, optional
+        Run the frames as tasks on that Dask cluster (at most two per worker in flight: a long series is
+        not read into the client's memory at once); the client is left open.
+    devices : list of local devices, optional
+        Spread the frames over these OpenCL devices (default: the best one).
+    warm_start : bool
+        Frame t starts from frame t - 1's volume (in order, one local device).
+    offset : None, 'auto' or a number
+        Camera offset subtracted from each frame (default None: the frames have none).
+    progress : callable, optional
+        ``progress(frame_index, info)`` after each frame (info: iterations, converged, objective, seconds).
+    padded_shape, max_memory, stream, lean, dtype, backend :
+        As :func:`cm2cl.reconstruct`, for every frame.
+    **params :
+        The solver's parameters, as :func:`cm2cl.reconstruct` (``psf_refine`` excepted: refine the PSF on
+        one frame, then give the series ``rec.psf``).
+
+    Returns
+    -------
+    JobSummary
+        frames, computed, skipped (already done), converged, iterations, seconds, devices.
+
+    The store is the CLI's (:class:`~cm2cl.jobs.FrameStore`): read it with ``zarr.open(output)['0']``
+    or ``FrameStore.open_readonly(output)``; ``cm2cl verify`` checks it.
+    """
+    prm = check_keywords("reconstruct_series", params)
+    if prm.psf_refine:
+        raise InputError("psf_refine: not for a series; refine the PSF on one frame (cm2cl.reconstruct(..., "
+                         "psf_refine=N)) and give the series rec.psf")
+    if client is not None and (warm_start or devices):
+        raise InputError("client: the frames run on the cluster's workers; give client, or devices / warm_start")
+    series = frames if isinstance(frames, (FrameSeries, ArraySeries)) else (
+        ArraySeries(frames) if isinstance(frames, np.ndarray) else FrameSeries(frames))
+    h, vs, d = _psf(psf, voxel_size_um, depths_um)
+    if tuple(h.shape[1:]) != tuple(series.shape):
+        raise InputError(f"frames: shape {tuple(series.shape)} does not match the PSF's sensor grid "
+                         f"{tuple(h.shape[1:])}")
+    ex = executor_for(devices or [None], client, warm_start)
+    dt = np.dtype(dtype)
+    ex.check(dt)
+    solver_kw = {"max_memory": max_memory, "stream": stream, "lean": lean}
+    if padded_shape is not None:
+        solver_kw["padded_shape"] = tuple(int(n) for n in padded_shape)
+    prep = {"offset": offset, "bin": 1, "padding": "full", "warm_start": bool(warm_start),
+            "padded_shape": solver_kw.get("padded_shape")}
+    key = fingerprint(h, prm, series, dt, backend, prep)
+    record = {"what": "cm2cl reconstruction series (Python)", "params": prm.as_dict(), "prep": prep,
+              "frames": [f"{f.path}[{f.index}]" for f in series.frames[:1000]]}
+    from ..io.prepare import prepare
+
+    with FrameStore.open(output, fingerprint=key, n_frames=len(series), volume_shape=h.shape, dtype=dt,
+                         voxel_size_um=vs, depths_um=d, record=record) as store:
+        return run_series(series, h, store, params=prm, key=key, executor=ex, dtype=dt, backend=backend,
+                          prepare=lambda a: prepare(a, offset=offset, name="frame"), progress=progress,
+                          solver_kw=solver_kw)
+
+
+def _psf(psf, voxel_size_um, depths_um):
+    """(PSF stack float64, voxel size, depths) from an array or a TIFF path (its scale unless given)."""
+    vs, d = voxel_size_um, depths_um
+    if isinstance(psf, (str, bytes)) or hasattr(psf, "__fspath__"):
+        from ..io import read_tiff
+
+        psf, meta = read_tiff(psf)
+        if vs is None and meta.get("unit") == "um" and meta.get("voxel_size_um") and len(meta["voxel_size_um"]) == 3:
+            vs = meta["voxel_size_um"]
+        if d is None:
+            d = meta.get("depths_um")
+    h = validate.psf_stack(validate.image_array(psf, "psf"), "psf")
+    h = np.asarray(h, np.float64)
+    from ..solver.api import _scale
+
+    vs, d = _scale(vs, d, h.shape[0])
+    return h, vs, d
+
+
+__all__ = ["reconstruct_series"]

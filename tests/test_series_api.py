@@ -1,0 +1,97 @@
+"""cm2cl.reconstruct_series (issue 26): a series job from Python in one call, with the frames each equal to
+a single-frame solve, resumed like the CLI, on a Dask Client with a bounded number of frames in flight."""
+
+import numpy as np
+import pytest
+import zarr
+
+import cm2cl
+from cm2cl.errors import InputError
+from cm2cl.jobs import FrameSeries
+from test_jobs import ARGS, _series  # noqa: F401 - the series of the CLI's tests
+
+KW = dict(max_iter=25, tol=0.0)
+
+
+def _frames(tmp_path, n=3):
+    psf, frames = _series(tmp_path, n=n)
+    return psf.astype(np.float64), frames.astype(np.float64)
+
+
+def test_array_frames_equal_single_frame_solves_and_resume(rt, tmp_path):
+    psf, frames = _frames(tmp_path)
+    out = tmp_path / "s.ome.zarr"
+    seen = []
+    s = cm2cl.reconstruct_series(frames, psf, out, progress=lambda i, info: seen.append(i), **KW)
+    assert (s.frames, s.computed, s.skipped) == (3, 3, 0) and sorted(seen) == [0, 1, 2]
+    vol = np.asarray(zarr.open_group(str(out), mode="r")["0"])
+    for t in range(3):
+        one = cm2cl.reconstruct(frames[t], psf, **KW).volume
+        np.testing.assert_allclose(vol[t], one, rtol=1e-5, atol=1e-6 * one.max())
+    # the same call resumes: nothing to do; a frame whose chunk is damaged is computed again, to the same bits
+    s = cm2cl.reconstruct_series(frames, psf, out, **KW)
+    assert (s.computed, s.skipped) == (0, 3)
+    (out / "0" / "1.0.0.0").write_bytes(b"\0" * 50)
+    s = cm2cl.reconstruct_series(frames, psf, out, **KW)
+    assert (s.computed, s.skipped) == (1, 2)
+    np.testing.assert_array_equal(np.asarray(zarr.open_group(str(out), mode="r")["0"]), vol)
+    # another job (other parameters) on the same store is refused
+    with pytest.raises(InputError, match="another"):
+        cm2cl.reconstruct_series(frames, psf, out, max_iter=26, tol=0.0)
+
+
+def test_file_frames_and_psf_path_label_the_store(rt, tmp_path):
+    _frames(tmp_path)
+    out = tmp_path / "f.ome.zarr"
+    s = cm2cl.reconstruct_series(str(tmp_path / "series.tif"), tmp_path / "psf.ome.tif", out, warm_start=True, **KW)
+    assert s.computed == 3
+    attrs = dict(zarr.open_group(str(out), mode="r").attrs)
+    assert attrs["cm2cl"]["voxel_size_um"] == [10.0, 2.0, 2.0]
+
+
+def test_bad_calls_are_refused_before_any_store(rt, tmp_path):
+    psf, frames = _frames(tmp_path)
+    out = tmp_path / "x.ome.zarr"
+    for kw, msg in ((dict(psf_refine=2), "psf_refine: not for a series"),
+                    (dict(client="tcp://127.0.0.1:9", warm_start=True), "client:"),
+                    (dict(l1=-1.0), "l1")):
+        with pytest.raises(InputError, match=msg):
+            cm2cl.reconstruct_series(frames, psf, out, **kw)
+    with pytest.raises(InputError, match="does not match the PSF's sensor grid"):
+        cm2cl.reconstruct_series(frames[:, :-1], psf, out)
+    with pytest.raises(InputError, match=r"\(T, My, Mx\)"):
+        cm2cl.reconstruct_series(frames[0], psf, out)
+    with pytest.raises(TypeError, match="unexpected keyword"):
+        cm2cl.reconstruct_series(frames, psf, out, bogus=1)
+    assert not out.exists()
+
+
+class _CountingSeries(FrameSeries):
+    """A FrameSeries that records, for each frame read, how many frames had finished by then."""
+
+    def __init__(self, *a, finished=None, **k):
+        super().__init__(*a, **k)
+        self.finished, self.reads = finished, []
+
+    def read(self, i):
+        self.reads.append(len(self.finished))
+        return super().read(i)
+
+
+def test_dask_client_with_backpressure(rt, tmp_path):
+    import distributed
+
+    _frames(tmp_path, n=6)
+    finished = []
+    series = _CountingSeries(str(tmp_path / "series.tif"), finished=finished)
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, host="127.0.0.1", processes=True,
+                                  dashboard_address=None) as cluster, distributed.Client(cluster) as client:
+        s = cm2cl.reconstruct_series(series, tmp_path / "psf.ome.tif", tmp_path / "d.ome.zarr", client=client,
+                                     progress=lambda i, info: finished.append(i), **KW)
+        assert s.computed == 6 and client.status == "running"   # the caller's client is left open
+    # one worker: two frames in flight; frame k (k >= 2) is read only after k - 1 frames finished
+    assert len(series.reads) == 6 and all(r >= k - 1 for k, r in enumerate(series.reads) if k >= 2), series.reads
+    ref = cm2cl.reconstruct_series(str(tmp_path / "series.tif"), tmp_path / "psf.ome.tif", tmp_path / "l.ome.zarr", **KW)
+    assert ref.computed == 6
+    np.testing.assert_array_equal(np.asarray(zarr.open_group(str(tmp_path / "d.ome.zarr"), mode="r")["0"]),
+                                  np.asarray(zarr.open_group(str(tmp_path / "l.ome.zarr"), mode="r")["0"]))
