@@ -56,10 +56,7 @@ def test_each_folder_says_what_it_owns():
 def test_every_subpackage_ships_in_the_wheel():
     """pyproject.toml lists the packages by name: a new subpackage missing there is absent from the wheel
     (and the installed package fails to import)."""
-    try:
-        import tomllib
-    except ModuleNotFoundError:   # Python 3.10: the same parser as tomli
-        import tomli as tomllib
+    import tomllib
 
     listed = set(tomllib.loads((PKG.parent / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
     found = {".".join(p.parent.relative_to(PKG.parent).parts) for p in PKG.rglob("__init__.py")}

@@ -254,21 +254,21 @@ def test_a_lock_file_replaced_under_a_waiting_run_is_taken_again(tmp_path):
     """The holder removes its lock file when done: a run that opened the old file before that must not
     believe it holds the lock while a third run locks the new file."""
     path = tmp_path / ".x.cm2cl-lock"
-    real_flock, calls = staging.fcntl.flock, []
+    real_lock, calls = staging._lock_nonblocking, []
 
-    def flock(fd, op):
-        real_flock(fd, op)
+    def lock(fd):
+        real_lock(fd)
         if not calls:              # between this run's open and its check, the holder leaves, another comes
             calls.append(1)
             path.unlink()
             calls.append(staging.exclusive_lock(path, "taken"))
 
-    staging.fcntl.flock = flock
+    staging._lock_nonblocking = lock
     try:
         with pytest.raises(InputError, match="^busy$"):
             staging.exclusive_lock(path, "busy")
     finally:
-        staging.fcntl.flock = real_flock
+        staging._lock_nonblocking = real_lock
     staging.release_lock(calls[1], path)
     assert _listing(tmp_path) == []
 

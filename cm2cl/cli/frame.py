@@ -240,9 +240,9 @@ def _report(out, outset, rec, how, vol):
           f"log: {outset.sidecars['log'].name}, {outset.sidecars['record'].name}")
     lay = info.get("layout") or []
     if len(lay) > 1 or any(p["streamed"] or p.get("lean") for p in lay):
-        import resource
+        from ..solver.memory import peak_rss_bytes
 
-        rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024   # Linux: KiB
+        rss = peak_rss_bytes()
         print("  planes: " + "; ".join(
             f"{p['planes'][0]}..{p['planes'][1] - 1} on {p['device']}"
             + (f" streamed in slabs of {p['slab_planes']}{' (double-buffered)' if p.get('overlap') else ''}"

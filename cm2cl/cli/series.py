@@ -59,10 +59,10 @@ def command(args, params: ADMMParams) -> int:
                            progress=progress, solver_kw=solver_kw)
         finally:
             progress.close()
-    import resource
+    from ..solver.memory import peak_rss_bytes
 
     where = ex.where or ", ".join(s.devices) or "-"
-    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20    # Linux: KiB -> GiB
+    rss = peak_rss_bytes() / 2**30
     print(f"{out}: {s.frames} frames of {shape} {dt.name} volumes; {s.computed} computed "
           f"({s.converged} converged, {s.iterations} iterations), {s.skipped} already done; "
           + (f"{len(store.recomputed)} whose chunk failed its checksum computed again; " if store.recomputed else "")

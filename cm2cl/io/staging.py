@@ -20,7 +20,6 @@ Fault points for tests: ``CM2CL_FAULT=<step>`` kills the process (SIGKILL) at th
 from __future__ import annotations
 
 import errno
-import fcntl
 import os
 import shutil
 import signal
@@ -69,14 +68,25 @@ def fault_point(name: str) -> None:
 
 
 def alive(pid: int) -> bool:
-    """Whether process ``pid`` still runs (its staged files are not stale)."""
+    """Whether process ``pid`` still runs (its staged files are not stale); psutil's test, which on
+    Windows does not send a signal (``os.kill(pid, 0)`` there would stop the process)."""
+    import psutil
+
+    return psutil.pid_exists(int(pid))
+
+
+def _lock_nonblocking(fd: int) -> None:
+    """An exclusive, non-blocking lock on the open file ``fd``: ``flock`` on POSIX, ``msvcrt.locking`` of
+    its first byte on Windows; an OSError with EWOULDBLOCK / EAGAIN / EACCES when another process holds it."""
     try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
+        import fcntl
+    except ImportError:          # Windows
+        import msvcrt
+
+        os.lseek(fd, 0, os.SEEK_SET)
+        msvcrt.locking(fd, msvcrt.LK_NBLCK, 1)
+        return
+    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
 
 
 def exclusive_lock(path, refusal: str) -> int:
@@ -88,10 +98,10 @@ def exclusive_lock(path, refusal: str) -> int:
     while True:
         fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
         try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            _lock_nonblocking(fd)
         except OSError as exc:
             os.close(fd)
-            if exc.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+            if exc.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES, getattr(errno, "EDEADLOCK", -1)):
                 raise InputError(refusal) from exc
             raise
         try:

@@ -232,3 +232,18 @@ def _proportional_runs(nz, budgets):
     edges = (np.concatenate([[0], np.cumsum(share)]) * nz).round().astype(int)
     edges[-1] = nz
     return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:])]
+
+
+def peak_rss_bytes() -> int:
+    """This process's peak resident memory in bytes, on every OS: ``getrusage`` (KiB on Linux, bytes on
+    macOS), psutil's peak working set on Windows (no ``resource`` module there)."""
+    import sys
+
+    try:
+        import resource
+    except ImportError:
+        import psutil
+
+        return int(getattr(psutil.Process().memory_info(), "peak_wset", 0))
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return int(rss if sys.platform == "darwin" else rss * 1024)
