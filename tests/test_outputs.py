@@ -123,6 +123,26 @@ def test_a_failure_while_writing_leaves_nothing(rt, tmp_path, capsys, monkeypatc
     assert _listing(tmp_path) == []
 
 
+def test_missing_output_folders_are_created_and_removed_when_nothing_is_published(rt, tmp_path, capsys, monkeypatch):
+    """Issue 26: -o new/sub/vol.ome.tif makes the folders (as simulate and demo do); a run that fails
+    removes the folders it made; a file in the way or an unwritable parent is refused before the solve."""
+    assert _run(tmp_path, tmp_path / "new" / "sub" / "vol.ome.tif") == 0
+    assert sorted(p.name for p in (tmp_path / "new" / "sub").iterdir()) == ["vol.cm2cl.json", "vol.cm2cl.log.csv",
+                                                                          "vol.ome.tif"]
+    monkeypatch.setattr(io, "write_tiff", _full_disk)
+    assert _run(tmp_path, tmp_path / "other" / "deep" / "vol.ome.tif") == 2
+    assert "nothing was written" in capsys.readouterr().err and not (tmp_path / "other").exists()
+    monkeypatch.undo()
+    (tmp_path / "afile").write_text("x")
+    assert _run(tmp_path, tmp_path / "afile" / "vol.ome.tif") == 2
+    err = capsys.readouterr().err
+    assert "is a file, not a folder" in err and len(err.strip().splitlines()) == 1
+    real_access = os.access
+    monkeypatch.setattr(staging.os, "access", lambda p, m: False if str(p) == str(tmp_path) else real_access(p, m))
+    assert _run(tmp_path, tmp_path / "x" / "vol.ome.tif") == 2
+    assert "is not writable" in capsys.readouterr().err and not (tmp_path / "x").exists()
+
+
 def test_a_failure_while_writing_keeps_the_previous_result_whole(rt, tmp_path, capsys, monkeypatch):
     assert _run(tmp_path, tmp_path / "vol.ome.tif") == 0
     before = {n: (tmp_path / n).read_bytes() for n in _listing(tmp_path)}

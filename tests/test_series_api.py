@@ -42,7 +42,7 @@ def test_array_frames_equal_single_frame_solves_and_resume(rt, tmp_path):
 
 def test_file_frames_and_psf_path_label_the_store(rt, tmp_path):
     _frames(tmp_path)
-    out = tmp_path / "f.ome.zarr"
+    out = tmp_path / "new" / "f.ome.zarr"     # its missing folder is made
     s = cm2cl.reconstruct_series(str(tmp_path / "series.tif"), tmp_path / "psf.ome.tif", out, warm_start=True, **KW)
     assert s.computed == 3
     attrs = dict(zarr.open_group(str(out), mode="r").attrs)

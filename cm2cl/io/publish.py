@@ -30,7 +30,7 @@ import secrets
 from pathlib import Path
 
 from ..errors import InputError
-from .staging import (FAULT_ENV, alive, check_room, exclusive_lock, fault_point,  # noqa: F401 (re-exported)
+from .staging import (FAULT_ENV, alive, check_room, exclusive_lock, fault_point, make_parents, remove_empty,  # noqa: F401
                       release_lock)
 from .tiff import tiff_stem
 
@@ -88,8 +88,9 @@ def check_output_file(target, expected_bytes: int = 0, inputs=(), what: str = "o
     ``what`` otherwise). Returns its folder."""
     t = Path(target)
     parent = t.parent
-    if not parent.is_dir():
-        raise InputError(f"{what} '{t}': folder '{parent}' does not exist")
+    if not parent.is_dir():     # missing folders are made by OutputSet (checked here: writable, room)
+        check_room(t, what, expected_bytes)
+        return parent
     check_name_length(t, [p.name for p in sidecar_names(t, extras).values()], what)
     if t.is_dir():
         raise InputError(f"{what} '{t}': is a directory; give a file name (e.g. {t / 'volume.ome.tif'})")
@@ -129,11 +130,19 @@ class OutputSet:
         self._staged = {}
         self._committed = False
         self.published = False
+        self._created = []      # the output's missing folders, made here, removed again if nothing is published
         try:
+            self._created = make_parents(parent)
+            if self._created:
+                check_name_length(t, [p.name for p in self.sidecars.values()], what)
             self._lock = exclusive_lock(self._lock_path, f"{what} '{t}': another run is writing it; wait for it "
                                                          "or choose another output")
         except OSError as exc:
-            raise InputError(f"{what} '{t}': cannot write in '{parent}' ({exc.strerror})") from exc
+            remove_empty(self._created)
+            raise InputError(f"{what} '{t}': cannot write in '{parent}' ({exc.strerror or exc})") from exc
+        except BaseException:
+            remove_empty(self._created)
+            raise
         try:
             if self._journal.exists():        # a run killed after its commit: complete its publication
                 self._roll_forward()
@@ -206,6 +215,9 @@ class OutputSet:
         if self._lock is not None:
             release_lock(self._lock, self._lock_path)
             self._lock = None
+        if not self.published and not keep:
+            remove_empty(self._created)
+            self._created = []
 
     def __enter__(self):
         return self

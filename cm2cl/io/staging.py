@@ -31,7 +31,7 @@ import numpy as np
 from ..errors import InputError
 
 __all__ = ["jsonable", "check_output_dir", "check_room", "StagedOutput", "fault_point", "exclusive_lock",
-           "release_lock", "exchange", "FAULT_ENV", "FOLDER_STEPS"]
+           "release_lock", "exchange", "make_parents", "remove_empty", "FAULT_ENV", "FOLDER_STEPS"]
 
 #: environment variable of the fault points (tests only)
 FAULT_ENV = "CM2CL_FAULT"
@@ -179,7 +179,7 @@ def check_output_dir(outdir, record_name: str | None = None, expected_bytes: int
     return folder
 
 
-def _make_parents(folder: Path) -> list[Path]:
+def make_parents(folder: Path) -> list[Path]:
     """Create ``folder`` and its missing parents; the ones created, deepest first."""
     missing = []
     p = folder.absolute()
@@ -190,7 +190,7 @@ def _make_parents(folder: Path) -> list[Path]:
     return missing
 
 
-def _remove_empty(folders) -> None:
+def remove_empty(folders) -> None:
     for d in folders:
         try:
             d.rmdir()
@@ -218,7 +218,7 @@ class StagedOutput:
         self.dir = None
         self.published = False
         try:
-            self._created = _make_parents(parent)
+            self._created = make_parents(parent)
         except OSError as exc:
             raise InputError(f"{what} '{self.out}': cannot create its folder ({exc.strerror})") from exc
         try:
@@ -277,7 +277,7 @@ class StagedOutput:
             release_lock(self._lock, self._lock_path)
             self._lock = None
         if not self.published:
-            _remove_empty(self._created)
+            remove_empty(self._created)
 
     def __enter__(self):
         return self

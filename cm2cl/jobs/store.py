@@ -62,8 +62,14 @@ class FrameStore:
         path = Path(path)
         if path.exists() and not path.is_dir():
             raise InputError(f"output '{path}': exists and is not an OME-Zarr folder")
-        if not path.parent.is_dir():
-            raise InputError(f"output '{path}': folder '{path.parent}' does not exist")
+        if not path.parent.is_dir():     # the missing folders are made (checked first: writable, no file in the way)
+            from ..io.staging import check_room, make_parents
+
+            check_room(path, "output")
+            try:
+                make_parents(path.parent)
+            except OSError as exc:
+                raise InputError(f"output '{path}': cannot create folder '{path.parent}' ({exc.strerror or exc})") from exc
         check_name_length(path, [])
         shape = (int(n_frames),) + tuple(int(n) for n in volume_shape)
         if not path.exists():
