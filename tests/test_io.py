@@ -155,6 +155,40 @@ def test_ome_metadata_of_the_wrong_type_is_a_one_line_error(tmp_path, old, new, 
         assert msg in str(info.value) and "v.ome.tif" in str(info.value) and "\n" not in str(info.value)
 
 
+def test_ome_image_and_channel_are_named(rt, tmp_path):
+    """Issue 26: viewers show the OME Image's name and the channel (they showed Image0 and nothing): the
+    file's stem by default, the reconstruction's output and measurement, the channel and its emission."""
+    import numpy as np
+
+    from cm2cl.cli import main
+    from test_admm import bead_problem
+
+    def image_and_channel(p):
+        root = ET.fromstring(tifffile.TiffFile(p).ome_metadata)
+        ns = {"o": root.tag[1:].split("}")[0]}
+        img = root.find("o:Image", ns)
+        return img.get("Name"), img.find("o:Pixels/o:Channel", ns).attrib
+
+    write_tiff(tmp_path / "plain.ome.tif", np.ones((4, 5), np.float32))
+    name, ch = image_and_channel(tmp_path / "plain.ome.tif")
+    assert name == "plain" and "Name" not in ch and "EmissionWavelength" not in ch
+    write_tiff(tmp_path / "c.ome.tif", np.ones((4, 5), np.float32), name="cells", channel="GFP", emission_nm=510)
+    name, ch = image_and_channel(tmp_path / "c.ome.tif")
+    assert name == "cells" and ch["Name"] == "GFP" and float(ch["EmissionWavelength"]) == 510.0
+    assert ch["EmissionWavelengthUnit"] == "nm"
+    with pytest.raises(InputError, match="emission wavelength"):
+        write_tiff(tmp_path / "d.ome.tif", np.ones((4, 5), np.float32), emission_nm=-3)
+    psf, _, y = bead_problem(6)
+    tifffile.imwrite(tmp_path / "psf.tif", psf.astype(np.float32), photometric="minisblack")
+    tifffile.imwrite(tmp_path / "frame7.tif", (y * 1000).astype(np.float32))
+    assert main(["reconstruct", str(tmp_path / "frame7.tif"), "--psf", str(tmp_path / "psf.tif"), "-o",
+                 str(tmp_path / "vol.ome.tif"), "--max-iter", "3", "--quiet", "--channel", "GCaMP6f",
+                 "--emission-nm", "512"]) == 0
+    name, ch = image_and_channel(tmp_path / "vol.ome.tif")
+    assert name == "vol (cm2cl reconstruction of frame7.tif)" and ch["Name"] == "GCaMP6f"
+    assert float(ch["EmissionWavelength"]) == 512.0
+
+
 def test_tiff_stem():
     assert str(tiff_stem("a/vol.ome.tif")) == "a/vol" and str(tiff_stem("vol.TIFF")) == "vol"
     assert str(tiff_stem("v.1.tif")) == "v.1"

@@ -186,7 +186,7 @@ def test_bad_series_inputs_are_refused_before_any_output(rt, tmp_path):
     (["--save-background"], "--save-background"), (["--host-memory", "1G"], "--host-memory"),
     (["--background", "opening:10px"], "--background opening:R"), (["--background", "garbage"], "background"),
     (["--camera", "gain=2,read-noise=1"], "--camera"), (["--psf-refine", "2"], "--psf-refine"),
-    (["--save-psf"], "--save-psf")])
+    (["--save-psf"], "--save-psf"), (["--channel", "GFP"], "--channel"), (["--emission-nm", "510"], "--emission-nm")])
 def test_series_refuses_the_frame_options_it_does_not_honour(rt, tmp_path, capsys, extra, flag):
     """A series job given an option it does not apply (issue 27: they used to change nothing) stops before
     any work with one line naming the option, and creates no store."""

@@ -184,6 +184,24 @@ def test_a_simulation_refused_after_the_check_leaves_no_folder(tmp_path, monkeyp
     assert _listing(tmp_path) == []
 
 
+def test_simulated_files_name_their_scene_and_channel(sim_result, tmp_path):
+    """Issue 26: the OME Image is named after the scene and what the file is, the channel carries the
+    optics' emission wavelength (viewers showed Image0 and no channel)."""
+    import xml.etree.ElementTree as ET
+
+    from cm2cl.simulate import write_simulation
+
+    write_simulation(sim_result, tmp_path / "sim")
+    for fname, what in (("measurement.ome.tif", "measurement"), ("psf.ome.tif", "PSF stack"),
+                        ("ground_truth.ome.tif", "ground truth")):
+        root = ET.fromstring(tifffile.TiffFile(tmp_path / "sim" / fname).ome_metadata)
+        ns = {"o": root.tag[1:].split("}")[0]}
+        img = root.find("o:Image", ns)
+        ch = img.find("o:Pixels/o:Channel", ns)
+        assert img.get("Name") == f"demo_beads: {what}" and ch.get("Name") == "fluorescence"
+        assert float(ch.get("EmissionWavelength")) == pytest.approx(530.0) and ch.get("EmissionWavelengthUnit") == "nm"
+
+
 def test_simulate_writing_failure_keeps_the_previous_folder(sim_result, tmp_path, monkeypatch):
     from cm2cl.simulate import pipeline, write_simulation
 

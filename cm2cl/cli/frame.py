@@ -220,7 +220,9 @@ def _write(args, outset, rec, dt, how):
              "params": rec.params, "scaling": rec.scaling, "info": rec.info, "padded": bool(args.padded),
              "voxel_space": io.OBJECT_SPACE if rec.voxel_size_um else None, "scale": how}
     io.write_tiff(outset.staged("volume"), vol, voxel_size_um=rec.voxel_size_um, depths_um=rec.depths_um,
-                  extra=extra)
+                  extra=extra, name=f"{io.tiff_stem(args.output).name} (cm2cl reconstruction of "
+                                    f"{Path(args.measurement).name})",
+                  channel=args.channel, emission_nm=args.emission_nm)
     rec.write_log(outset.staged("log"), fmt="csv")
     rec.write_log(outset.staged("record"), fmt="json", extra=outset.record_fields())
     outset.publish()   # committed, then the old sidecars, the volume, the new sidecars: never two runs mixed

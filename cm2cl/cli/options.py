@@ -144,6 +144,20 @@ def _seconds(text: str) -> float:
     return v
 
 
+def _positive(text: str) -> float:
+    """A finite number > 0 (argparse type)."""
+    import argparse
+    import math
+
+    try:
+        v = float(text)
+    except ValueError:
+        v = float("nan")
+    if not math.isfinite(v) or v <= 0:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a positive number")
+    return v
+
+
 def add_output(r) -> None:
     g = r.add_argument_group("output")
     g.add_argument("-o", "--output", required=True,
@@ -164,6 +178,10 @@ def add_output(r) -> None:
     g.add_argument("--dry-run", action="store_true",
                    help="print the plan (grid, device and host memory, whether it fits) from the TIFF headers, "
                         "solve and write nothing")
+    g.add_argument("--channel", default="fluorescence", metavar="NAME",
+                   help="the channel's name in the OME metadata (default 'fluorescence'; e.g. GCaMP, GFP)")
+    g.add_argument("--emission-nm", type=_positive, default=None, metavar="NM",
+                   help="the channel's emission wavelength in nm, written to the OME metadata")
     g.add_argument("--progress-every", type=_seconds, default=30.0, metavar="SECONDS",
                    help="when stderr is not a terminal (batch logs, pipes): a progress line every SECONDS "
                         "(iteration or frame, objective, time left; default 30, 0: none)")

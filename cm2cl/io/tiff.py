@@ -79,7 +79,8 @@ def _check_geometry(path, a, voxel_size_um, depths_um):
     return vs, depths
 
 
-def write_tiff(path, array, voxel_size_um=None, depths_um=None, extra=None) -> Path:
+def write_tiff(path, array, voxel_size_um=None, depths_um=None, extra=None, name=None, channel=None,
+               emission_nm=None) -> Path:
     """Write a 2D (y, x) or 3D (z, y, x) array as OME-TIFF with its physical geometry.
 
     Parameters
@@ -90,6 +91,9 @@ def write_tiff(path, array, voxel_size_um=None, depths_um=None, extra=None) -> P
         when the physical scale is not known: the file then says pixels.
     depths_um : optional depth of each z plane in um (OME ``Plane PositionZ``).
     extra : optional JSON-serialisable dict stored in the record (what the data is).
+    name : the OME Image's name, which viewers show (default: the file's name without .ome.tif).
+    channel, emission_nm : the OME Channel's name and emission wavelength in nm (default: no channel name
+        or wavelength).
     """
     import tifffile
 
@@ -100,7 +104,19 @@ def write_tiff(path, array, voxel_size_um=None, depths_um=None, extra=None) -> P
     record = {_KEY: __import__("cm2cl").__version__, "shape": list(a.shape), "dtype": str(a.dtype),
               "voxel_size_um": vs, "unit": "um" if vs else "pixel", "depths_um": depths,
               "extra": jsonable(extra or {})}
-    md = {"axes": "ZYX" if a.ndim == 3 else "YX", "Description": json.dumps(record)}
+    md = {"axes": "ZYX" if a.ndim == 3 else "YX", "Description": json.dumps(record),
+          "Name": str(name) if name is not None else tiff_stem(path).name}
+    if emission_nm is not None:
+        try:
+            em = float(emission_nm)
+        except (TypeError, ValueError):
+            em = float("nan")
+        if not (np.isfinite(em) and em > 0):
+            raise InputError(f"write_tiff '{path}': emission wavelength {emission_nm!r} nm must be a positive number")
+    if channel is not None or emission_nm is not None:
+        md["Channel"] = {**({"Name": str(channel)} if channel is not None else {}),
+                         **({"EmissionWavelength": em, "EmissionWavelengthUnit": "nm"} if emission_nm is not None
+                            else {})}
     if vs is not None:
         md.update(PhysicalSizeX=vs[-1], PhysicalSizeXUnit="µm", PhysicalSizeY=vs[-2], PhysicalSizeYUnit="µm")
         if a.ndim == 3:

@@ -243,19 +243,23 @@ def _write_outputs(result: SimulationResult, scene: Scene, tmp: Path) -> dict:
     opt = scene.optics
     p = opt.pixel_size_um
     files = {}
+    channel = {"channel": "fluorescence", "emission_nm": opt.wavelength_um * 1e3}
     write_tiff(tmp / "measurement.ome.tif", result.measurement, voxel_size_um=(p, p),
                extra={"kind": "measurement", "units": result.record["measurement"]["units"],
-                      "voxel_space": "sensor", "object_pixel_um": result.voxel_size_um[1], "scene": scene.name})
+                      "voxel_space": "sensor", "object_pixel_um": result.voxel_size_um[1], "scene": scene.name},
+               name=f"{scene.name}: measurement", **channel)
     files["measurement"] = "measurement.ome.tif"
     write_tiff(tmp / "psf.ome.tif", result.psf, voxel_size_um=result.voxel_size_um, depths_um=result.depths_um,
                extra={"kind": "psf", "normalisation": "each plane: the untruncated on-axis array sums to 1",
                       "voxel_space": OBJECT_SPACE, "sensor_pixel_um": p,
-                      "axis_pixel": list(opt.center_px), "scene": scene.name})
+                      "axis_pixel": list(opt.center_px), "scene": scene.name},
+               name=f"{scene.name}: PSF stack", **channel)
     files["psf"] = "psf.ome.tif"
     write_tiff(tmp / "ground_truth.ome.tif", result.ground_truth, voxel_size_um=result.voxel_size_um,
                depths_um=result.depths_um,
                extra={"kind": "ground_truth", "units": "photo-electrons per voxel", "voxel_space": OBJECT_SPACE,
-                      "frame": result.record["volume"]["frame"], "scene": scene.name})
+                      "frame": result.record["volume"]["frame"], "scene": scene.name},
+               name=f"{scene.name}: ground truth", **channel)
     files["ground_truth"] = "ground_truth.ome.tif"
     if result.emitters is not None:
         e = result.emitters
