@@ -128,6 +128,8 @@ def add_series(r) -> None:
     g.add_argument("--scheduler", default=None,
                    help="run the frames on this Dask distributed scheduler (tcp://host:port) instead of the local "
                         "devices; pin each worker to a device with CM2CL_DEVICE")
+    g.add_argument("--frame-interval", type=_positive, default=None, metavar="SECONDS",
+                   help="time between frames: the store's t axis in seconds (default: in frames)")
 
 
 def _seconds(text: str) -> float:

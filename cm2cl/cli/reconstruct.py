@@ -33,7 +33,8 @@ EPILOG = """examples:
     cm2cl reconstruct frames/ --psf psf.ome.tif -o series.ome.zarr --scheduler tcp://host:8786"""
 
 #: options of a series only: (option, whether it was given)
-_SERIES_ONLY = (("--scheduler", lambda a: a.scheduler), ("--warm-start", lambda a: a.warm_start))
+_SERIES_ONLY = (("--scheduler", lambda a: a.scheduler), ("--warm-start", lambda a: a.warm_start),
+                ("--frame-interval", lambda a: a.frame_interval is not None))
 #: options of a single frame that a series does not honour yet: (option, whether it was given); a series
 #: refuses them before any work rather than running without them
 _FRAME_ONLY = (("--dry-run", lambda a: a.dry_run), ("--mask", lambda a: a.mask),
@@ -43,7 +44,7 @@ _FRAME_ONLY = (("--dry-run", lambda a: a.dry_run), ("--mask", lambda a: a.mask),
                ("--camera", lambda a: a.camera not in (None, "none")),
                ("--background opening:R", lambda a: a.background not in (None, "model", "none")),
                ("--psf-refine", lambda a: a.psf_refine), ("--save-psf", lambda a: a.save_psf),
-               ("--channel", lambda a: a.channel != "fluorescence"), ("--emission-nm", lambda a: a.emission_nm))
+               ("--emission-nm", lambda a: a.emission_nm))
 
 
 def register(sub):

@@ -23,11 +23,26 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ..io.publish import check_name_length, exclusive_lock, fault_point
+from ..io.publish import check_name_length, exclusive_lock, fault_point, release_lock
 
+#: the job's bookkeeping lives beside the store, outside the zarr hierarchy (zarr warns about anything in it
+#: that is no array or group): ``.NAME.cm2cl-done/`` (one marker per finished frame) and ``.NAME.cm2cl-lock``;
+#: stores of cm2cl before 0.2 kept the markers inside, as ``NAME/.cm2cl-done``, and are still read
 DONE = ".cm2cl-done"
 LOCK = ".cm2cl-lock"
 log = logging.getLogger("cm2cl")
+
+
+def done_dir(path) -> Path:
+    """The folder of a store's done markers: inside (an older store) when it is there, else beside it."""
+    path = Path(path)
+    inside = path / DONE
+    return inside if inside.is_dir() else path.parent / f".{path.name}{DONE}"
+
+
+def lock_path(path) -> Path:
+    path = Path(path)
+    return path.parent / f".{path.name}{LOCK}"
 
 
 def digest(volume, dtype) -> str:
@@ -35,14 +50,28 @@ def digest(volume, dtype) -> str:
     return hashlib.sha256(np.ascontiguousarray(volume, dtype=np.dtype(dtype)).tobytes()).hexdigest()
 
 
-def ngff_multiscales(name: str, voxel_size_um, ndim: int = 4) -> list[dict]:
-    """NGFF 0.4 ``multiscales`` for a (t, z, y, x) array: micrometre scale when known, unit-less pixels
-    otherwise."""
-    axes = [{"name": "t", "type": "time"}] + [
-        {"name": a, "type": "space", **({"unit": "micrometer"} if voxel_size_um else {})} for a in "zyx"]
-    scale = [1.0] + ([float(v) for v in voxel_size_um] if voxel_size_um else [1.0, 1.0, 1.0])
+def ngff_multiscales(name: str, voxel_size_um, ndim: int = 4, depths_um=None, frame_interval_s=None) -> list[dict]:
+    """NGFF 0.4 ``multiscales`` for a (t, z, y, x) array: micrometre scale when known (unit-less pixels
+    otherwise), a translation putting z at the first plane's depth (lateral origin: the first pixel, as in
+    the OME-TIFF), and t in seconds when the frame interval is known (frames otherwise)."""
+    um = {"unit": "micrometer"} if voxel_size_um else {}
+    t_axis = {"name": "t", "type": "time", **({"unit": "second"} if frame_interval_s else {})}
+    axes = [t_axis] + [{"name": a, "type": "space", **um} for a in "zyx"]
+    scale = [float(frame_interval_s or 1.0)] + ([float(v) for v in voxel_size_um] if voxel_size_um else [1.0] * 3)
+    transforms = [{"type": "scale", "scale": scale[-ndim:]}]
+    if voxel_size_um and depths_um is not None and len(depths_um) and float(depths_um[0]) != 0.0:
+        transforms.append({"type": "translation", "translation": ([0.0, float(depths_um[0]), 0.0, 0.0])[-ndim:]})
     return [{"version": "0.4", "name": name, "axes": axes[-ndim:],
-             "datasets": [{"path": "0", "coordinateTransformations": [{"type": "scale", "scale": scale[-ndim:]}]}]}]
+             "datasets": [{"path": "0", "coordinateTransformations": transforms}]}]
+
+
+def omero(channel: str, vmax: float = 1.0) -> dict:
+    """The NGFF ``omero`` block: one greyscale channel named ``channel``, its display window 0 .. vmax."""
+    v = float(vmax) if np.isfinite(vmax) and vmax > 0 else 1.0
+    return {"version": "0.4", "rdefs": {"model": "greyscale", "defaultT": 0, "defaultZ": 0},
+            "channels": [{"label": str(channel), "color": "FFFFFF", "active": True, "coefficient": 1.0,
+                          "family": "linear", "inverted": False,
+                          "window": {"min": 0.0, "max": v, "start": 0.0, "end": v}}]}
 
 
 class FrameStore:
@@ -50,13 +79,18 @@ class FrameStore:
 
     def __init__(self, path: Path, array, lock_fd):
         self.path, self.array, self._lock = path, array, lock_fd
+        #: the brightest voxel this run wrote (the omero display window is widened to it at close)
+        self._vmax = 0.0
         #: frames marked done whose chunk failed its checksum when the store was reopened (now to recompute)
         self.recomputed: list[int] = []
 
     @classmethod
     def open(cls, path, *, fingerprint: str, n_frames: int, volume_shape, dtype, voxel_size_um=None,
-             depths_um=None, record: dict | None = None) -> "FrameStore":
-        """Create the store (whole, by a rename: never a half-made store) or reopen it for a resume."""
+             depths_um=None, record: dict | None = None, channel: str = "fluorescence",
+             frame_interval_s: float | None = None) -> "FrameStore":
+        """Create the store (whole, by a rename: never a half-made store) or reopen it for a resume. Chunks
+        are keyed with "/" (NGFF 0.4); ``channel`` names the ``omero`` channel, whose display window follows
+        the brightest voxel written; ``frame_interval_s`` gives t its unit (seconds)."""
         import zarr
 
         path = Path(path)
@@ -70,21 +104,26 @@ class FrameStore:
                 make_parents(path.parent)
             except OSError as exc:
                 raise InputError(f"output '{path}': cannot create folder '{path.parent}' ({exc.strerror or exc})") from exc
-        check_name_length(path, [])
+        check_name_length(path, [done_dir(path).name, lock_path(path).name])
         shape = (int(n_frames),) + tuple(int(n) for n in volume_shape)
         if not path.exists():
             tmp = path.with_name(f".{path.name}.partial-{os.getpid()}")
             shutil.rmtree(tmp, ignore_errors=True)
             try:
                 g = zarr.open_group(str(tmp), mode="w", zarr_format=2)
-                g.create_array("0", shape=shape, chunks=(1,) + shape[1:], dtype=np.dtype(dtype), fill_value=0)
-                g.attrs.update({"multiscales": ngff_multiscales(path.name, voxel_size_um),
+                g.create_array("0", shape=shape, chunks=(1,) + shape[1:], dtype=np.dtype(dtype), fill_value=0,
+                               chunk_key_encoding={"name": "v2", "separator": "/"})
+                g.attrs.update({"multiscales": ngff_multiscales(path.name, voxel_size_um, depths_um=depths_um,
+                                                                frame_interval_s=frame_interval_s),
+                                "omero": omero(channel),
                                 "cm2cl": {"fingerprint": fingerprint, "n_frames": int(n_frames),
                                           "volume_shape": list(shape[1:]), "dtype": np.dtype(dtype).name,
                                           "voxel_size_um": list(voxel_size_um) if voxel_size_um else None,
                                           "depths_um": [float(d) for d in depths_um] if depths_um is not None else None,
                                           **(record or {})}})
-                (tmp / DONE).mkdir()
+                book = path.parent / f".{path.name}{DONE}"
+                shutil.rmtree(book, ignore_errors=True)    # markers of a store that was deleted: not this one's
+                book.mkdir()
                 os.rename(tmp, path)
             except OSError as exc:
                 shutil.rmtree(tmp, ignore_errors=True)
@@ -104,8 +143,11 @@ class FrameStore:
             arr = g["0"]
         except Exception as exc:  # noqa: BLE001 - not a zarr group at all
             raise InputError(f"store '{path}': not a cm2cl OME-Zarr store ({type(exc).__name__})") from exc
-        if not isinstance(meta, dict) or not (path / DONE).is_dir():
+        if not isinstance(meta, dict):
             raise InputError(f"store '{path}': not a cm2cl OME-Zarr store (no cm2cl record)")
+        if not done_dir(path).is_dir():
+            raise InputError(f"store '{path}': its job record '{done_dir(path).name}' is missing beside it (moved "
+                             "without it?); rerunning the job checks and recomputes its frames")
         return cls(path, arr, None)
 
     @classmethod
@@ -122,19 +164,28 @@ class FrameStore:
         except Exception as exc:  # noqa: BLE001 - not a zarr group, or its metadata cannot be read
             raise InputError(f"output '{path}': exists and is not a cm2cl OME-Zarr store (its metadata cannot be read: "
                              f"{type(exc).__name__}: {str(exc)[:120]}); not overwritten") from exc
-        if not isinstance(meta, dict) or not (path / DONE).is_dir() or not hasattr(arr, "shape"):
+        if not isinstance(meta, dict) or not hasattr(arr, "shape"):
             raise InputError(f"output '{path}': exists and is not a cm2cl OME-Zarr store; not overwritten")
         if meta.get("fingerprint") != fingerprint:
             raise InputError(f"output '{path}': holds another job (different PSF, parameters or frames); "
                              "refusing to mix results: choose a new output")
         if tuple(arr.shape) != tuple(shape):
             raise InputError(f"output '{path}': holds an array of shape {tuple(arr.shape)}, this job needs {shape}")
-        fd = exclusive_lock(path / LOCK, f"output '{path}': another run is writing this store; wait for it "
-                                         "or choose another output")
+        try:
+            fd = exclusive_lock(lock_path(path), f"output '{path}': another run is writing this store; wait for "
+                                                 "it or choose another output")
+        except OSError as exc:
+            raise InputError(f"output '{path}': its folder cannot be written ({exc.strerror or exc}); resume it "
+                             "where it can be, or choose a new output") from exc
+        try:
+            done_dir(path).mkdir(exist_ok=True)     # a store moved without its markers: every frame computed again
+        except OSError as exc:
+            release_lock(fd, lock_path(path))
+            raise InputError(f"output '{path}': its folder cannot be written ({exc.strerror or exc})") from exc
         store = cls(path, arr, fd)
         for i in store.verify():      # a lost or overwritten chunk: its frame is computed again
             log.warning("output '%s': frame %d does not match its checksum; it is computed again", path, i)
-            (path / DONE / f"{i:08d}").unlink()
+            (done_dir(path) / f"{i:08d}").unlink()
             store.recomputed.append(i)
         return store
 
@@ -143,7 +194,7 @@ class FrameStore:
         return int(self.array.shape[0])
 
     def done(self) -> set[int]:
-        return {int(p.name) for p in (self.path / DONE).iterdir() if p.name.isdigit()}
+        return {int(p.name) for p in done_dir(self.path).iterdir() if p.name.isdigit()}
 
     def missing(self) -> list[int]:
         d = self.done()
@@ -180,23 +231,45 @@ class FrameStore:
         vol = np.asarray(volume, self.array.dtype)
         info = {**(info or {}), "sha256": digest(vol, self.array.dtype)}
         self.array[int(i)] = vol
+        if vol.size:
+            self._vmax = max(self._vmax, float(np.nanmax(vol)))
         fault_point(f"after_chunk.{int(i)}")   # tests: kill -9 between chunk and mark
-        d = self.path / DONE
+        d = done_dir(self.path)
         tmp = d / f".{int(i):08d}.{os.getpid()}.{threading.get_ident()}"
         tmp.write_text(json.dumps(info))
         os.replace(tmp, d / f"{int(i):08d}")
 
     def info(self, i: int) -> dict:
         """The summary recorded with frame ``i`` when it was marked done."""
-        return json.loads((self.path / DONE / f"{int(i):08d}").read_text() or "{}")
+        return json.loads((done_dir(self.path) / f"{int(i):08d}").read_text() or "{}")
 
     def read(self, i: int) -> np.ndarray:
         return np.asarray(self.array[int(i)])
 
     def close(self) -> None:
         if self._lock is not None:
-            os.close(self._lock)
-            self._lock = None
+            try:
+                self._widen_window()
+            finally:
+                release_lock(self._lock, lock_path(self.path))
+                self._lock = None
+
+    def _widen_window(self) -> None:
+        """The omero window's end raised to the brightest voxel written (viewers open the store at a contrast
+        that shows the volume); a store without an omero block (older cm2cl) keeps its metadata."""
+        import zarr
+
+        if self._vmax <= 0:
+            return
+        g = zarr.open_group(str(self.path), mode="r+", zarr_format=2)
+        block = dict(g.attrs).get("omero")
+        if not isinstance(block, dict) or not block.get("channels"):
+            return
+        ch = block["channels"][0]
+        meta = dict(g.attrs.get("cm2cl") or {})
+        end = max(self._vmax, float(meta.get("display_max") or 0.0))   # over every run on this store
+        g.attrs["cm2cl"] = {**meta, "display_max": end}
+        g.attrs["omero"] = omero(ch.get("label", "fluorescence"), end)
 
     def __enter__(self):
         return self
