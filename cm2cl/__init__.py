@@ -13,6 +13,6 @@ __version__ = "0.1.0"
 
 logging.getLogger("cm2cl").addHandler(logging.NullHandler())
 
-from .errors import CM2Error, DeviceError, InputError, KernelBuildError  # noqa: E402,F401
+from .errors import CM2Error, DeviceError, InputError, JobError, KernelBuildError  # noqa: E402,F401
 from .solver import ForwardModel, Reconstruction, reconstruct  # noqa: E402,F401
 from .jobs.series import reconstruct_series  # noqa: E402,F401

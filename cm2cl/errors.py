@@ -15,3 +15,8 @@ class DeviceError(CM2Error, RuntimeError):
 
 class KernelBuildError(CM2Error, RuntimeError):
     """An OpenCL program failed to build; the message holds the file name and the build log."""
+
+
+class JobError(CM2Error, RuntimeError):
+    """A job of many frames stopped by something outside the inputs (a Dask cluster that lost its workers
+    or its scheduler); the message says what, which frames are kept, and how to resume."""

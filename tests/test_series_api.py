@@ -95,3 +95,60 @@ def test_dask_client_with_backpressure(rt, tmp_path):
     assert ref.computed == 6
     np.testing.assert_array_equal(np.asarray(zarr.open_group(str(tmp_path / "d.ome.zarr"), mode="r")["0"]),
                                   np.asarray(zarr.open_group(str(tmp_path / "l.ome.zarr"), mode="r")["0"]))
+
+
+def test_dask_worker_killed_mid_job_resubmits_and_cluster_lost_says_how_to_resume(rt, tmp_path, caplog):
+    """Issue 27: the only worker killed (SIGKILL) after the first frame took the scattered PSF with it: the
+    PSF is sent again and the lost frames resubmitted, to the local result's bits. The cluster closed under
+    the job: one JobError line saying what, the frames kept, and how to resume; the rerun completes it."""
+    import logging
+    import os
+    import signal
+
+    import distributed
+
+    from cm2cl.errors import JobError
+
+    _frames(tmp_path, n=5)
+    series, psf = str(tmp_path / "series.tif"), tmp_path / "psf.ome.tif"
+    ref = tmp_path / "l.ome.zarr"
+    cm2cl.reconstruct_series(series, psf, ref, **KW)
+    caplog.set_level(logging.WARNING, logger="cm2cl")
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, host="127.0.0.1", processes=True,
+                                  dashboard_address=None) as cluster, distributed.Client(cluster) as client:
+        pids = list(client.run(os.getpid).values())
+        done = []
+
+        def kill_after_first(i, info):
+            done.append(i)
+            if len(done) == 1:
+                for p in pids:
+                    os.kill(p, signal.SIGKILL)
+
+        out = tmp_path / "k.ome.zarr"
+        s = cm2cl.reconstruct_series(series, psf, out, client=client, progress=kill_after_first, **KW)
+        assert s.computed == 5
+        assert any("PSF is sent again" in r.getMessage() for r in caplog.records), [r.getMessage() for r in caplog.records]
+        np.testing.assert_array_equal(np.asarray(zarr.open_group(str(out), mode="r")["0"]),
+                                      np.asarray(zarr.open_group(str(ref), mode="r")["0"]))
+    cluster = distributed.LocalCluster(n_workers=1, threads_per_worker=1, host="127.0.0.1", processes=True,
+                                       dashboard_address=None)
+    client = distributed.Client(cluster)
+    out = tmp_path / "c.ome.zarr"
+    try:
+        def close_after_first(i, info):
+            if not getattr(close_after_first, "done", False):
+                close_after_first.done = True
+                cluster.close()
+
+        with pytest.raises(JobError) as info:
+            cm2cl.reconstruct_series(series, psf, out, client=client, progress=close_after_first, **KW)
+        msg = str(info.value)
+        assert "the job stopped" in msg and "rerun the same command to resume" in msg and "\n" not in msg, msg
+    finally:
+        client.close()
+        cluster.close()
+    s = cm2cl.reconstruct_series(series, psf, out, **KW)       # resumed locally: the finished frames kept
+    assert s.skipped >= 1 and s.computed + s.skipped == 5
+    np.testing.assert_array_equal(np.asarray(zarr.open_group(str(out), mode="r")["0"]),
+                                  np.asarray(zarr.open_group(str(ref), mode="r")["0"]))

@@ -7,6 +7,7 @@ is built once per (job, device) and reused for every frame it takes (its PSF spe
 from __future__ import annotations
 
 import itertools
+import logging
 import queue
 import threading
 import time
@@ -15,9 +16,11 @@ from typing import Callable, Protocol
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import CM2Error, InputError, JobError
 from ..solver.params import ADMMParams
 from .frames import FrameSeries
+
+log = logging.getLogger(__name__)
 
 #: solvers of this process, by (job fingerprint, device): Dask workers keep theirs between tasks
 _SOLVERS: dict = {}
@@ -174,6 +177,8 @@ class DaskCluster:
     """The frames as tasks on a Dask distributed scheduler (``tcp://host:port``): one solver per worker
     process, cached across tasks; pin each worker to a device with ``CM2CL_DEVICE`` in its environment."""
 
+    #: resubmissions of one frame whose data a dying worker took with it (the PSF scattered to it alone)
+    RETRIES = 3
     #: frames in flight per worker: enough to keep each busy while the next frame is read and sent, few enough
     #: that a long series is not read and held in the client's memory at once (backpressure)
     IN_FLIGHT_PER_WORKER = 2
@@ -236,15 +241,18 @@ class DaskCluster:
         from distributed import as_completed
 
         client = self.client()
+        finished = []
         try:
-            psf_f = client.scatter(np.asarray(job.psf), broadcast=True)
+            psf = np.asarray(job.psf)
+            box = {"psf": client.scatter(psf, broadcast=True)}
             pd = job.params.as_dict()
             pending = iter(todo)
             futs: dict = {}
+            tries: dict = {}
             done = as_completed()
 
             def submit(i):
-                f = client.submit(solve_frame, job.key, psf_f, pd, job.dtype, job.backend, job.measurement(i),
+                f = client.submit(solve_frame, job.key, box["psf"], pd, job.dtype, job.backend, job.measurement(i),
                                   solver_kw=job.solver_kw, pure=False)
                 futs[f] = i
                 done.add(f)
@@ -253,14 +261,51 @@ class DaskCluster:
                 submit(i)
             self.peak_in_flight = len(futs)
             for fut in done:
-                finish(futs.pop(fut), *fut.result())
+                i = futs.pop(fut)
+                try:
+                    result = fut.result()
+                except CM2Error:
+                    raise                  # the frame's own error (a NaN frame, ...): one line, as locally
+                except Exception as exc:  # noqa: BLE001 - the cluster's: lost data, a killed worker, a lost scheduler
+                    tries[i] = tries.get(i, 0) + 1
+                    if not _lost_data(exc) or tries[i] > self.RETRIES:
+                        raise
+                    log.warning("Dask: frame %d lost its data with a worker (%s); the PSF is sent again and the frame "
+                                "resubmitted (%d of %d)", i, type(exc).__name__, tries[i], self.RETRIES)
+                    box["psf"] = client.scatter(psf, broadcast=True)
+                    submit(i)
+                    continue
+                finish(i, *result)
+                finished.append(i)
                 nxt = next(pending, None)
                 if nxt is not None:
                     submit(nxt)
                     self.peak_in_flight = max(self.peak_in_flight, len(futs))
+        except CM2Error:
+            raise
+        except Exception as exc:  # noqa: BLE001 - reported in one line with how to resume
+            raise JobError(f"Dask cluster '{self.address}': the job stopped ({type(exc).__name__}: "
+                           f"{_first_line(exc)}); {len(finished)} frames finished in this run are kept in "
+                           f"'{getattr(store, 'path', store)}', rerun the same command to resume") from exc
         finally:
             if self.given is None:
                 client.close()
+
+
+def _lost_data(exc) -> bool:
+    """Whether a Dask failure is data lost with a worker (the scattered PSF), which a resubmission cures,
+    rather than a task that kills its workers (KilledWorker) or a lost scheduler."""
+    import asyncio
+    import concurrent.futures
+
+    name = type(exc).__name__
+    return name in ("FutureCancelledError", "CancelledError") or isinstance(
+        exc, (asyncio.CancelledError, concurrent.futures.CancelledError))
+
+
+def _first_line(exc) -> str:
+    text = str(exc).strip().splitlines()
+    return (text[0] if text else "")[:200]
 
 
 def executor_for(devices=(None,), scheduler=None, warm_start: bool = False) -> Executor:
