@@ -103,9 +103,9 @@ def _psf(psf, voxel_size_um, depths_um):
             d = meta.get("depths_um")
     h = validate.psf_stack(validate.image_array(psf, "psf"), "psf")
     h = np.asarray(h, np.float64)
-    from ..solver.api import _scale
+    from ..solver.api import check_scale
 
-    vs, d = _scale(vs, d, h.shape[0])
+    vs, d = check_scale(vs, d, h.shape[0])
     return h, vs, d
 
 

@@ -117,7 +117,7 @@ def reconstruct(measurement, psf, *, dtype=np.float32, backend: str = "auto", de
     if y.shape != psf.shape[1:]:
         raise InputError(f"measurement: shape {y.shape} does not match the PSF's sensor grid "
                          f"{psf.shape[1:]} (psf shape {psf.shape})")
-    vs, d = _scale(voxel_size_um, depths_um, psf.shape[0])
+    vs, d = check_scale(voxel_size_um, depths_um, psf.shape[0])
     y, weights, cam = _camera(y, weights, camera)
     pad_info = None
     if padding not in ("full", "support"):
@@ -196,7 +196,7 @@ def _camera(y, weights, camera):
     return y, w, cam
 
 
-def _scale(voxel_size_um, depths_um, nz: int):
+def check_scale(voxel_size_um, depths_um, nz: int):
     """(voxel size, depths) checked: 3 positive numbers, ``nz`` finite depths (either None)."""
     vs = d = None
     if voxel_size_um is not None:
@@ -218,4 +218,4 @@ def fft_backend(backend, device) -> str:
     return resolve_backend(backend, get_runtime(device))
 
 
-__all__ = ["reconstruct", "fft_backend"]
+__all__ = ["reconstruct", "fft_backend", "check_scale"]
