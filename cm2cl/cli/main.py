@@ -61,10 +61,10 @@ def _log_handler(args):
 
 def _registrars():
     """One module per sub-command, each with ``register(subparsers)`` and ``command(args)``."""
-    from . import demo, devices, prepare_psf, reconstruct, simulate, verify
+    from . import analyze, demo, devices, prepare_psf, reconstruct, simulate, verify
 
     return [devices.register, demo.register, simulate.register, reconstruct.register, prepare_psf.register,
-            verify.register]
+            verify.register, analyze.register]
 
 
 class Terminated(BaseException):

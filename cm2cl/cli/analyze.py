@@ -1,0 +1,178 @@
+"""``cm2cl analyze``: the paper's characterisation of a measured PSF stack and of a reconstruction, each
+writing a table, a record and a figure into one output folder (published whole).
+
+- ``cm2cl analyze pcc PSF.ome.tif -o OUT/``: axial PCC curves per view configuration (3x3, 2x3, 2x2, 1 for
+  the CM2's array; the lenslets are found in the stack), registered by the cross-correlation peak, and each
+  configuration's full width at PCC = 0.8 (paper Fig. 2A): ``pcc.csv``, ``pcc.png``, ``analysis.json``.
+- ``cm2cl analyze particles VOL.ome.tif -o OUT/``: the particles of a reconstruction, each fitted with a 3D
+  Gaussian, their lateral and axial FWHM in um, and the statistics over them (Fig. 2D, 3E):
+  ``particles.csv``, ``particles.png``, ``analysis.json``."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+
+import numpy as np
+
+from ..errors import InputError
+
+__all__ = ["register", "command"]
+
+RECORD = "analysis.json"
+
+
+def register(sub):
+    a = sub.add_parser("analyze", help="characterise a PSF stack (pcc) or a reconstruction (particles)",
+                       description=__doc__)
+    kinds = a.add_subparsers(dest="kind", metavar="KIND", required=True)
+    p = kinds.add_parser("pcc", help="axial PCC curves of a PSF stack per view configuration, widths at PCC 0.8")
+    p.add_argument("psf", help="the PSF stack (OME-TIFF with its depths, or any (nz, My, Mx) TIFF)")
+    p.add_argument("-o", "--output", required=True, help="output folder (made; replaced whole when it is a "
+                                                          "previous analysis)")
+    p.add_argument("--ref-z", type=float, default=None, metavar="UM",
+                   help="depth of the reference plane (default: the sharpest plane)")
+    p.add_argument("--level", type=float, default=0.8, help="PCC level of the widths (default 0.8, the paper's)")
+    q = kinds.add_parser("particles", help="3D Gaussian fits of the particles of a reconstruction: FWHM in um")
+    q.add_argument("volume", help="a reconstruction (OME-TIFF with its voxel size)")
+    q.add_argument("-o", "--output", required=True, help="output folder")
+    q.add_argument("--threshold", type=float, default=0.2,
+                   help="particles are local maxima above this fraction of the volume's maximum (default 0.2)")
+    for s in (p, q):
+        s.set_defaults(func=command)
+    return a
+
+
+def command(args) -> int:
+    from .. import io
+    from ..io.staging import StagedOutput
+
+    data, meta = io.read_tiff(args.psf if args.kind == "pcc" else args.volume)
+    if data.ndim != 3:
+        raise InputError(f"'{args.psf if args.kind == 'pcc' else args.volume}': expected a 3D stack, got shape "
+                         f"{data.shape}")
+    if args.kind == "pcc":
+        if not 0 < args.level < 1:
+            raise InputError(f"--level: {args.level} is not between 0 and 1")
+        result = _pcc(args, data, meta)
+    else:
+        if not 0 < args.threshold < 1:
+            raise InputError(f"--threshold: {args.threshold} is not between 0 and 1")
+        result = _particles(args, data, meta)
+    with StagedOutput(args.output, RECORD, what="--output") as stage:
+        png = result.pop("png")
+        _write_csv(stage.dir / result["table"], result.pop("rows"), result.pop("columns"))
+        result["figure"] = _figure(png, stage.dir / result["figure"])
+        stage.publish(RECORD, json.dumps(result, indent=2, default=_plain))
+    print(result.pop("say"))
+    return 0
+
+
+def _plain(v):
+    if isinstance(v, (np.integer,)):
+        return int(v)
+    if isinstance(v, (np.floating,)):
+        return float(v)
+    if isinstance(v, np.ndarray):
+        return v.tolist()
+    return str(v)
+
+
+def _depths(meta, nz):
+    d = meta.get("depths_um")
+    if d is not None and len(d) == nz:
+        return np.asarray(d, float), "um"
+    vs = meta.get("voxel_size_um")
+    if meta.get("unit") == "um" and vs and len(vs) == 3:
+        return np.arange(nz) * float(vs[0]), "um"
+    return np.arange(nz, dtype=float), "plane"
+
+
+def _pcc(args, psf, meta) -> dict:
+    from ..analysis.views import pcc_curves
+
+    z, unit = _depths(meta, psf.shape[0])
+    ref = None
+    if args.ref_z is not None:
+        if unit != "um":
+            raise InputError("--ref-z: the PSF stack has no depths in um; its planes are indices")
+        ref = int(np.argmin(np.abs(z - args.ref_z)))
+    r = pcc_curves(psf, z, ref_index=ref, level=args.level)
+    names = list(r["curves"])
+    rows = [[float(z[k])] + [float(r["curves"][n][k]) for n in names] for k in range(z.size)]
+    widths = r["widths_um"]
+    say = f"{args.output}: PCC widths at {args.level:g} ({unit}, reference plane at {z[r['ref_index']]:g}): " + \
+        ", ".join(f"{n} {'-' if widths[n] is None else f'{widths[n]:.1f}'}" for n in names)
+    return {"what": "cm2cl analyze pcc", "psf": str(args.psf), "depth_unit": unit, "level": args.level,
+            "reference_plane": r["ref_index"], "reference_depth": float(z[r["ref_index"]]),
+            "widths": widths, "lenslets": r["lenslets"], "windows": r["windows"],
+            "lenslet_centroids_px": r["grid"]["centroids"].tolist(), "table": "pcc.csv", "figure": "pcc.png",
+            "columns": [f"z_{unit}"] + [f"pcc_{n}" for n in names], "rows": rows,
+            "png": ("pcc", z, unit, r, args.level), "say": say}
+
+
+def _particles(args, vol, meta) -> dict:
+    from ..analysis.particles import particle_table, summary
+
+    vs = meta.get("voxel_size_um")
+    if meta.get("unit") != "um" or not vs or len(vs) != 3:
+        raise InputError(f"volume '{args.volume}': no voxel size in um in its metadata; the FWHM would be in voxels "
+                         "(write the reconstruction with a PSF that has an object-space scale, or --voxel-size)")
+    rows = particle_table(vol, vs, meta.get("depths_um"), threshold=args.threshold)
+    if not rows:
+        raise InputError(f"volume '{args.volume}': no particle above {args.threshold:g} of its maximum")
+    s = summary(rows)
+    cols = ["z_um", "y_um", "x_um", "fwhm_lateral_um", "fwhm_axial_um", "amplitude", "rel_residual", "ok"]
+    a = s["all"]
+
+    def med(k):
+        return "-" if a[k] is None else f"{a[k]['median']:.1f} um"
+
+    say = (f"{args.output}: {a['n']} particles, {a['n_fit']} fitted; median FWHM lateral {med('fwhm_lateral_um')}, "
+           f"axial {med('fwhm_axial_um')}")
+    return {"what": "cm2cl analyze particles", "volume": str(args.volume), "threshold": args.threshold,
+            "voxel_size_um": list(vs), "summary": s, "table": "particles.csv", "figure": "particles.png",
+            "columns": cols, "rows": [[r[c] for c in cols] for r in rows], "png": ("particles", rows), "say": say}
+
+
+def _write_csv(path, rows, columns):
+    with open(path, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(columns)
+        w.writerows(rows)
+
+
+def _figure(spec, path):
+    """The PNG of the analysis, or None (with why in the record) without matplotlib."""
+    try:
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        from matplotlib.figure import Figure
+    except ImportError:
+        return None
+    fig = Figure(figsize=(6.4, 4.0), dpi=120)
+    FigureCanvasAgg(fig)
+    if spec[0] == "pcc":
+        _, z, unit, r, level = spec
+        ax = fig.add_subplot(1, 1, 1)
+        for n, c in r["curves"].items():
+            w = r["widths_um"][n]
+            ax.plot(z, c, label=f"{n} ({'-' if w is None else f'{w:.0f}'} {unit})")
+        ax.axhline(level, color="0.5", lw=0.8, ls="--")
+        ax.set_xlabel(f"depth ({unit})")
+        ax.set_ylabel("PCC with the reference plane")
+        ax.set_ylim(min(0.0, min(float(np.min(c)) for c in r["curves"].values())), 1.02)
+        ax.legend(title=f"width at PCC {level:g}")
+    else:
+        rows = [r for r in spec[1] if r["ok"]]
+        for k, (key, lab) in enumerate((("fwhm_lateral_um", "lateral FWHM (um)"), ("fwhm_axial_um", "axial FWHM (um)"))):
+            ax = fig.add_subplot(1, 2, k + 1)
+            v = [r[key] for r in rows]
+            if v:
+                ax.hist(v, bins=max(5, int(math.sqrt(len(v))) + 1))
+                ax.axvline(float(np.median(v)), color="k", lw=1)
+            ax.set_xlabel(lab)
+            ax.set_ylabel("particles")
+    fig.tight_layout()
+    fig.savefig(path)
+    return path.name

@@ -1,0 +1,101 @@
+"""cm2cl analyze (issue 25): PCC curves per view configuration of a PSF stack and 3D Gaussian sizes of the
+particles of a volume, against closed forms, and the command's outputs."""
+
+import csv
+import json
+
+import numpy as np
+import pytest
+
+from cm2cl import io
+from cm2cl.analysis import quality as Q
+from cm2cl.analysis.particles import FWHM_PER_SIGMA, particle_table, summary
+from cm2cl.analysis.views import lenslet_grid, pcc_curves, view_configurations
+from cm2cl.cli import main
+
+
+def _spot_stack(z, c_um=50.0, s0=1.5, n=96):
+    """One centred Gaussian spot whose sigma grows as s0 (1 + |z| / c)."""
+    yy, xx = np.mgrid[:n, :n] - n // 2
+    return np.array([np.exp(-(yy ** 2 + xx ** 2) / (2 * (s0 * (1 + abs(zi) / c_um)) ** 2)) for zi in z])
+
+
+def test_pcc_width_of_a_blurring_spot_is_the_closed_form():
+    """Two centred 2D Gaussians of sigmas s0 and s have PCC 2 s0 s / (s0^2 + s^2), which is 0.8 at s = 2 s0:
+    with s = s0 (1 + |z| / c) the width at PCC 0.8 is 2c (the window's mean subtraction moves it < 2%)."""
+    z = np.arange(-100.0, 100.1, 2.5)
+    r = pcc_curves(_spot_stack(z), z)
+    assert list(r["curves"]) == ["1x1"] and r["ref_index"] == 40
+    assert r["widths_um"]["1x1"] == pytest.approx(100.0, rel=0.02)
+    s0, s = 1.5, 1.5 * (1 + np.abs(z) / 50.0)
+    np.testing.assert_allclose(r["curves"]["1x1"], 2 * s0 * s / (s0 ** 2 + s ** 2), atol=0.02)
+
+
+def test_array_psf_views_lose_correlation_faster_with_more_lenslets():
+    """The CM2-like 3 x 3 stack (views spreading apart with depth): the grid is found in the stack, the
+    configurations are 3x3, 2x3, 2x2 and the central lenslet, and more views decorrelate sooner."""
+    psf = Q.array_psf(24, (128, 128))
+    grid = lenslet_grid(psf)
+    assert [len(r) for r in grid["rows"]] == [3, 3, 3] and [len(c) for c in grid["cols"]] == [3, 3, 3]
+    assert grid["axis"] == grid["rows"][1][1]
+    conf = view_configurations(grid)
+    assert {k: len(v) for k, v in conf.items()} == {"3x3": 9, "2x3": 6, "2x2": 4, "1": 1}
+    z = np.arange(24) * 10.0
+    w = pcc_curves(psf, z, ref_index=12)["widths_um"]
+    assert w["3x3"] is not None and w["2x3"] is not None and w["2x2"] is not None
+    assert w["3x3"] < w["2x3"] <= w["2x2"] and (w["1"] is None or w["1"] > w["2x2"]), w
+
+
+def test_particle_fwhm_of_known_gaussians():
+    rng = np.random.default_rng(1)
+    shape, sz, sr = (20, 64, 64), 2.0, 1.5
+    zz, yy, xx = np.meshgrid(*(np.arange(n, dtype=float) for n in shape), indexing="ij")
+    centres = [(6.3, 15.2, 20.7), (12.8, 40.4, 45.1), (9.5, 50.0, 14.6)]
+    vol = sum(a * np.exp(-0.5 * (((zz - c[0]) / sz) ** 2 + ((yy - c[1]) ** 2 + (xx - c[2]) ** 2) / sr ** 2))
+              for a, c in zip((1.0, 0.7, 0.5), centres))
+    vol = vol + 0.002 * rng.standard_normal(shape)
+    rows = particle_table(vol, (10.0, 2.0, 2.0), threshold=0.3)
+    assert len(rows) == 3 and all(r["ok"] for r in rows)
+    for r in rows:
+        assert r["fwhm_lateral_um"] == pytest.approx(FWHM_PER_SIGMA * sr * 2.0, rel=0.03)
+        assert r["fwhm_axial_um"] == pytest.approx(FWHM_PER_SIGMA * sz * 10.0, rel=0.03)
+    got = sorted((r["z"], r["y"], r["x"]) for r in rows)
+    np.testing.assert_allclose(got, sorted(centres), atol=0.05)
+    s = summary(rows, key=lambda r: "left" if r["x"] < 32 else "right")
+    assert s["all"]["n_fit"] == 3 and s["regions"]["left"]["n"] == 2 and s["regions"]["right"]["n"] == 1
+
+
+def test_cli_analyze_pcc_and_particles(tmp_path, capsys):
+    z = np.arange(-100.0, 100.1, 5.0)
+    io.write_tiff(tmp_path / "psf.ome.tif", _spot_stack(z).astype(np.float32), voxel_size_um=(5.0, 2.0, 2.0),
+                  depths_um=z)
+    assert main(["analyze", "pcc", str(tmp_path / "psf.ome.tif"), "-o", str(tmp_path / "pcc")]) == 0
+    out = capsys.readouterr().out
+    rec = json.loads((tmp_path / "pcc" / "analysis.json").read_text())
+    assert rec["widths"]["1x1"] == pytest.approx(100.0, rel=0.02) and "1x1 " in out
+    with open(tmp_path / "pcc" / "pcc.csv") as f:
+        table = list(csv.reader(f))
+    assert table[0] == ["z_um", "pcc_1x1"] and len(table) == 1 + z.size and float(table[21][1]) == pytest.approx(1.0)
+    assert (tmp_path / "pcc" / "pcc.png").stat().st_size > 1000 and rec["figure"] == "pcc.png"
+    assert main(["analyze", "pcc", str(tmp_path / "psf.ome.tif"), "-o", str(tmp_path / "pcc"), "--ref-z", "50"]) == 0
+    assert json.loads((tmp_path / "pcc" / "analysis.json").read_text())["reference_depth"] == 50.0
+    # particles: a volume with its voxel size
+    vol = np.zeros((12, 40, 40))
+    zz, yy, xx = np.meshgrid(*(np.arange(n, dtype=float) for n in vol.shape), indexing="ij")
+    vol += np.exp(-0.5 * (((zz - 5.2) / 1.5) ** 2 + ((yy - 20.3) ** 2 + (xx - 18.6) ** 2) / 1.2 ** 2))
+    io.write_tiff(tmp_path / "vol.ome.tif", vol.astype(np.float32), voxel_size_um=(20.0, 3.0, 3.0))
+    assert main(["analyze", "particles", str(tmp_path / "vol.ome.tif"), "-o", str(tmp_path / "p")]) == 0
+    rec = json.loads((tmp_path / "p" / "analysis.json").read_text())
+    assert rec["summary"]["all"]["n_fit"] == 1
+    assert rec["summary"]["all"]["fwhm_axial_um"]["median"] == pytest.approx(FWHM_PER_SIGMA * 1.5 * 20.0, rel=0.03)
+    capsys.readouterr()
+    # refused in one line before any output: bad level, no scale, a 2D input
+    io.write_tiff(tmp_path / "px.ome.tif", vol.astype(np.float32))
+    io.write_tiff(tmp_path / "flat.ome.tif", vol[0].astype(np.float32))
+    for argv, msg in ((["pcc", str(tmp_path / "psf.ome.tif"), "--level", "2"], "--level"),
+                      (["particles", str(tmp_path / "px.ome.tif")], "no voxel size in um"),
+                      (["pcc", str(tmp_path / "flat.ome.tif")], "expected a 3D stack")):
+        assert main(["analyze", *argv, "-o", str(tmp_path / "bad")]) == 2
+        err = capsys.readouterr().err
+        assert msg in err and len(err.strip().splitlines()) == 1, err
+        assert not (tmp_path / "bad").exists()
