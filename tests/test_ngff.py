@@ -55,3 +55,26 @@ def test_store_without_known_interval_counts_frames(rt, tmp_path):
     attrs = json.loads((out / ".zattrs").read_text())
     t = attrs["multiscales"][0]["axes"][0]
     assert t == {"name": "t", "type": "time"} and attrs["omero"]["channels"][0]["label"] == "fluorescence"
+
+
+def test_large_frames_are_chunked_for_viewers_and_done_only_when_whole(tmp_path):
+    """A frame of 20 x 300 x 520 is 3 x 2 x 3 chunks of at most 8 x 256 x 256; a frame partly written (a
+    run killed inside it) is not done; a done frame one of whose chunks is lost fails its checksum."""
+    from cm2cl.jobs.store import FrameStore
+
+    shape = (20, 300, 520)
+    rng = np.random.default_rng(0)
+    vol = rng.random(shape).astype(np.float32)
+    with FrameStore.open(tmp_path / "big.ome.zarr", fingerprint="x", n_frames=2, volume_shape=shape,
+                         dtype=np.float32) as store:
+        assert store.array.chunks == (1, 8, 256, 256)
+        store.write(0, vol, {"iterations": 1})
+        store.array[1, :8] = vol[:8]                 # part of frame 1's chunks, no marker
+        assert store.missing() == [1] and store.verify() == []
+        np.testing.assert_array_equal(store.read(0), vol)
+    chunks = [p for p in (tmp_path / "big.ome.zarr" / "0" / "0").rglob("*") if p.is_file()]
+    assert len(chunks) == 3 * 2 * 3
+    chunks[0].unlink()
+    with FrameStore.open(tmp_path / "big.ome.zarr", fingerprint="x", n_frames=2, volume_shape=shape,
+                         dtype=np.float32) as store:
+        assert store.recomputed == [0] and store.missing() == [0, 1]

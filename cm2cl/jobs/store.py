@@ -65,6 +65,17 @@ def ngff_multiscales(name: str, voxel_size_um, ndim: int = 4, depths_um=None, fr
              "datasets": [{"path": "0", "coordinateTransformations": transforms}]}]
 
 
+#: a chunk holds at most this many planes, rows and columns of one frame: a few MB that viewers stream
+#: (napari, neuroglancer), where one chunk per frame was ~320 MB at 972 x 1296 x 64
+CHUNK_ZYX = (8, 256, 256)
+
+
+def chunk_shape(shape) -> tuple:
+    """Chunks of a (t, z, y, x) store: one frame, at most CHUNK_ZYX of it. A frame is marked done only
+    after all its chunks are written, and its checksum covers them all."""
+    return (1,) + tuple(min(int(n), c) for n, c in zip(shape[1:], CHUNK_ZYX))
+
+
 def omero(channel: str, vmax: float = 1.0) -> dict:
     """The NGFF ``omero`` block: one greyscale channel named ``channel``, its display window 0 .. vmax."""
     v = float(vmax) if np.isfinite(vmax) and vmax > 0 else 1.0
@@ -111,7 +122,7 @@ class FrameStore:
             shutil.rmtree(tmp, ignore_errors=True)
             try:
                 g = zarr.open_group(str(tmp), mode="w", zarr_format=2)
-                g.create_array("0", shape=shape, chunks=(1,) + shape[1:], dtype=np.dtype(dtype), fill_value=0,
+                g.create_array("0", shape=shape, chunks=chunk_shape(shape), dtype=np.dtype(dtype), fill_value=0,
                                chunk_key_encoding={"name": "v2", "separator": "/"})
                 g.attrs.update({"multiscales": ngff_multiscales(path.name, voxel_size_um, depths_um=depths_um,
                                                                 frame_interval_s=frame_interval_s),
