@@ -421,3 +421,33 @@ def test_a_nan_frame_is_named_with_its_file(rt, tmp_path):
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
     assert "frame 1 (" in r.stderr and "series.tif" in r.stderr and "page 1" in r.stderr and "NaN" in r.stderr, r.stderr
     assert (tmp_path / ".n.ome.zarr.cm2cl-done" / "00000000").exists()
+
+
+@pytest.mark.parametrize("extra", [["--warm-start"], ["--scheduler", "tcp://127.0.0.1:9"], ["--pyramid", "3"],
+                                   ["--frame-interval", "0.5"]])
+def test_series_options_are_refused_for_one_frame(rt, tmp_path, capsys, extra):
+    """A series-only option given with a single-frame output stops before any work with one line."""
+    from cm2cl.cli import main
+
+    _series(tmp_path, n=1)
+    code = main(["reconstruct", str(tmp_path / "series.tif"), "--psf", str(tmp_path / "psf.ome.tif"), "-o",
+                 str(tmp_path / "v.ome.tif"), *ARGS, *extra])
+    err = capsys.readouterr().err
+    assert code == 2 and extra[0] in err and "only for a series" in err and len(err.strip().splitlines()) == 1, err
+    assert not (tmp_path / "v.ome.tif").exists()
+
+
+def test_cli_series_pyramid_and_frame_interval(rt, tmp_path):
+    import zarr
+
+    _series(tmp_path, n=2)
+    out = tmp_path / "p.ome.zarr"
+    r = _job(tmp_path, out, "--pyramid", "2", "--frame-interval", "0.25", "--channel", "GCaMP")
+    assert r.returncode == 0, r.stderr
+    attrs = dict(zarr.open_group(str(out), mode="r").attrs)
+    ms = attrs["multiscales"][0]
+    assert [d["path"] for d in ms["datasets"]] == ["0", "1"] and ms["axes"][0]["unit"] == "second"
+    assert ms["datasets"][0]["coordinateTransformations"][0]["scale"][0] == 0.25
+    assert attrs["omero"]["channels"][0]["label"] == "GCaMP"
+    r = _job(tmp_path, out, "--frame-interval", "0.25", "--channel", "GCaMP")      # other levels: refused
+    assert r.returncode == 2 and "resolution level" in r.stderr

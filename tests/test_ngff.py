@@ -5,6 +5,7 @@ whose display window covers the volume."""
 import json
 
 import numpy as np
+import pytest
 import zarr
 
 import cm2cl
@@ -78,3 +79,37 @@ def test_large_frames_are_chunked_for_viewers_and_done_only_when_whole(tmp_path)
     with FrameStore.open(tmp_path / "big.ome.zarr", fingerprint="x", n_frames=2, volume_shape=shape,
                          dtype=np.float32) as store:
         assert store.recomputed == [0] and store.missing() == [0, 1]
+
+
+def test_pyramid_levels_are_2x_means_validate_and_are_checked(rt, tmp_path):
+    """--pyramid 3: levels 1 and 2 are the 2 x 2 means of the level above (NGFF scale x2 and x4, pixel
+    centres translated), the store validates, napari's reader gets the levels, a damaged level fails the
+    frame's checksum, and a resume asking for other levels is refused."""
+    from ome_zarr_models.v04.image import Image
+
+    from cm2cl.errors import InputError
+    from cm2cl.io.napari_reader import get_reader
+    from cm2cl.jobs.store import FrameStore, downsample, read_record
+
+    out = _job(tmp_path, pyramid=3)
+    Image.from_zarr(zarr.open_group(str(out), mode="r"))
+    g = zarr.open_group(str(out), mode="r")
+    l0, l1, l2 = (np.asarray(g[k]) for k in "012")
+    assert l1.shape == (2, l0.shape[1], -(-l0.shape[2] // 2), -(-l0.shape[3] // 2))
+    np.testing.assert_allclose(l1[1], downsample(l0[1]), rtol=1e-6)
+    np.testing.assert_allclose(l2[0], downsample(downsample(l0[0])), rtol=1e-5)
+    assert l1[0, :, 3, 4] == pytest.approx(l0[0, :, 6:8, 8:10].mean(axis=(1, 2)), rel=1e-5)
+    ds = json.loads((out / ".zattrs").read_text())["multiscales"][0]["datasets"]
+    assert [d["path"] for d in ds] == ["0", "1", "2"]
+    s2 = {t["type"]: t for t in ds[2]["coordinateTransformations"]}
+    assert s2["scale"]["scale"][2:] == [16.0, 16.0] and s2["translation"]["translation"][2:] == [6.0, 6.0]
+    (data, kw, _), = get_reader(str(out))(str(out))
+    assert kw["multiscale"] and [a.shape for a in data] == [l0.shape, l1.shape, l2.shape]
+    zarr.open_group(str(out), mode="r+")["2"][1] = 0.0       # a coarse level damaged
+    store = FrameStore.open_readonly(out)
+    assert store.verify() == [1]
+    with pytest.raises(InputError, match="holds 3 resolution level"):
+        FrameStore.open(out, fingerprint=read_record(out)["fingerprint"], n_frames=2, volume_shape=l0.shape[1:],
+                        dtype=np.float32)
+
+

@@ -128,6 +128,9 @@ def add_series(r) -> None:
     g.add_argument("--scheduler", default=None,
                    help="run the frames on this Dask distributed scheduler (tcp://host:port) instead of the local "
                         "devices; pin each worker to a device with CM2CL_DEVICE")
+    g.add_argument("--pyramid", type=int, default=1, metavar="LEVELS",
+                   help="resolution levels of the store (default 1; e.g. 3: also 2x and 4x coarser laterally, "
+                        "for viewers of large frames)")
     g.add_argument("--frame-interval", type=_positive, default=None, metavar="SECONDS",
                    help="time between frames: the store's t axis in seconds (default: in frames)")
 

@@ -59,14 +59,17 @@ def read_tiff_layer(path):
 
 def read_zarr_layer(path):
     """(data, kwargs, 'image') of a series' OME-Zarr store: the (t, z, y, x) array (read lazily, chunk by
-    chunk), ``scale`` and ``translate`` from its NGFF ``multiscales``, the channel name from ``omero``."""
+    chunk; with a pyramid the list of its levels, ``multiscale``), ``scale`` and ``translate`` from its NGFF
+    ``multiscales``, the channel name and contrast window from ``omero``."""
     import zarr
 
     g = zarr.open_group(str(path), mode="r")
     attrs = dict(g.attrs)
     ms = (attrs.get("multiscales") or [{}])[0]
-    ds = (ms.get("datasets") or [{"path": "0"}])[0]
+    datasets = ms.get("datasets") or [{"path": "0"}]
+    ds = datasets[0]
     arr = g[ds.get("path", "0")]
+    pyramid = [g[d.get("path")] for d in datasets[1:]]
     scale, translate = (1.0,) * arr.ndim, (0.0,) * arr.ndim
     for t in ds.get("coordinateTransformations", []):
         if t.get("type") == "scale":
@@ -80,6 +83,9 @@ def read_zarr_layer(path):
           "metadata": {"cm2cl": attrs.get("cm2cl", {}), "channel": ch.get("label"), "path": str(path)}}
     if "start" in win and "end" in win and win["end"] > win["start"]:
         kw["contrast_limits"] = (float(win["start"]), float(win["end"]))
+    if pyramid:            # napari's multiscale image: the levels in order, the transform of level 0
+        kw["multiscale"] = True
+        arr = [arr, *pyramid]
     return arr, {k: v for k, v in kw.items() if v is not None}, "image"
 
 

@@ -19,7 +19,7 @@ from .store import FrameStore
 def reconstruct_series(frames, psf, output, *, client=None, devices=None, warm_start: bool = False,
                        dtype=np.float32, backend: str = "auto", offset=None, voxel_size_um=None, depths_um=None,
                        padded_shape=None, max_memory=None, stream="auto", lean="auto", progress=None,
-                       channel: str = "fluorescence", frame_interval_s: float | None = None,
+                       channel: str = "fluorescence", frame_interval_s: float | None = None, pyramid: int = 1,
                        **params) -> JobSummary:
     """Reconstruct every frame of a series into the OME-Zarr store ``output`` (created, or resumed).
 
@@ -39,8 +39,9 @@ def reconstruct_series(frames, psf, output, *, client=None, devices=None, warm_s
         Frame t starts from frame t - 1's volume (in order, one local device).
     offset : None, 'auto' or a number
         Camera offset subtracted from each frame (default None: the frames have none).
-    channel, frame_interval_s :
-        The store's channel name (its ``omero`` block) and the time between frames (its t axis in seconds).
+    channel, frame_interval_s, pyramid :
+        The store's channel name (its ``omero`` block), the time between frames (its t axis in seconds) and
+        its resolution levels (1: none coarser; 3: also 2x and 4x coarser laterally).
     progress : callable, optional
         ``progress(frame_index, info)`` after each frame (info: iterations, converged, objective, seconds).
     padded_shape, max_memory, stream, lean, dtype, backend :
@@ -84,7 +85,7 @@ def reconstruct_series(frames, psf, output, *, client=None, devices=None, warm_s
 
     with FrameStore.open(output, fingerprint=key, n_frames=len(series), volume_shape=h.shape, dtype=dt,
                          voxel_size_um=vs, depths_um=d, record=record, channel=channel,
-                         frame_interval_s=frame_interval_s) as store:
+                         frame_interval_s=frame_interval_s, levels=pyramid) as store:
         return run_series(series, h, store, params=prm, key=key, executor=ex, dtype=dt, backend=backend,
                           prepare=lambda a: prepare(a, offset=offset, name="frame"), progress=progress,
                           solver_kw=solver_kw)

@@ -50,19 +50,53 @@ def digest(volume, dtype) -> str:
     return hashlib.sha256(np.ascontiguousarray(volume, dtype=np.dtype(dtype)).tobytes()).hexdigest()
 
 
-def ngff_multiscales(name: str, voxel_size_um, ndim: int = 4, depths_um=None, frame_interval_s=None) -> list[dict]:
-    """NGFF 0.4 ``multiscales`` for a (t, z, y, x) array: micrometre scale when known (unit-less pixels
-    otherwise), a translation putting z at the first plane's depth (lateral origin: the first pixel, as in
-    the OME-TIFF), and t in seconds when the frame interval is known (frames otherwise)."""
+def ngff_multiscales(name: str, voxel_size_um, ndim: int = 4, depths_um=None, frame_interval_s=None,
+                     levels: int = 1) -> list[dict]:
+    """NGFF 0.4 ``multiscales`` for a (t, z, y, x) array and ``levels`` resolution levels (level k is 2^k
+    times coarser laterally, its pixel the mean of 2^k x 2^k): micrometre scale when known (unit-less
+    pixels otherwise), a translation putting z at the first plane's depth and each level's pixel centres
+    where their pixels are (lateral origin: the first pixel's centre, as in the OME-TIFF), and t in seconds
+    when the frame interval is known (frames otherwise)."""
     um = {"unit": "micrometer"} if voxel_size_um else {}
     t_axis = {"name": "t", "type": "time", **({"unit": "second"} if frame_interval_s else {})}
     axes = [t_axis] + [{"name": a, "type": "space", **um} for a in "zyx"]
-    scale = [float(frame_interval_s or 1.0)] + ([float(v) for v in voxel_size_um] if voxel_size_um else [1.0] * 3)
-    transforms = [{"type": "scale", "scale": scale[-ndim:]}]
-    if voxel_size_um and depths_um is not None and len(depths_um) and float(depths_um[0]) != 0.0:
-        transforms.append({"type": "translation", "translation": ([0.0, float(depths_um[0]), 0.0, 0.0])[-ndim:]})
-    return [{"version": "0.4", "name": name, "axes": axes[-ndim:],
-             "datasets": [{"path": "0", "coordinateTransformations": transforms}]}]
+    dz, dy, dx = (float(v) for v in voxel_size_um) if voxel_size_um else (1.0, 1.0, 1.0)
+    z0 = float(depths_um[0]) if voxel_size_um and depths_um is not None and len(depths_um) else 0.0
+    datasets = []
+    for k in range(int(levels)):
+        f = float(2 ** k)
+        scale = [float(frame_interval_s or 1.0), dz, dy * f, dx * f]
+        tr = [0.0, z0, (f - 1) / 2 * dy, (f - 1) / 2 * dx]
+        transforms = [{"type": "scale", "scale": scale[-ndim:]}]
+        if any(tr):
+            transforms.append({"type": "translation", "translation": tr[-ndim:]})
+        datasets.append({"path": str(k), "coordinateTransformations": transforms})
+    return [{"version": "0.4", "name": name, "axes": axes[-ndim:], "datasets": datasets}]
+
+
+def _levels_of(meta: dict, path) -> int:
+    """The resolution levels a store's record says it holds (1 for stores before pyramids)."""
+    v = meta.get("levels", 1)
+    if not isinstance(v, int) or isinstance(v, bool) or not 1 <= v <= 8:
+        raise InputError(f"store '{path}': its record says {v!r} resolution levels; not a cm2cl store this "
+                         "version can read")
+    return v
+
+
+def downsample(vol: np.ndarray) -> np.ndarray:
+    """A (z, y, x) volume 2x coarser laterally: each pixel the mean of 2 x 2 (an odd last row or column
+    averaged with its copy)."""
+    v = np.asarray(vol, np.float64)
+    if v.shape[1] % 2:
+        v = np.concatenate([v, v[:, -1:]], axis=1)
+    if v.shape[2] % 2:
+        v = np.concatenate([v, v[:, :, -1:]], axis=2)
+    return 0.25 * (v[:, 0::2, 0::2] + v[:, 1::2, 0::2] + v[:, 0::2, 1::2] + v[:, 1::2, 1::2])
+
+
+def level_shape(shape, k: int) -> tuple:
+    """(t, z, y, x) of resolution level k of a store of ``shape``."""
+    return tuple(shape[:2]) + tuple(-(-int(n) // 2 ** k) for n in shape[2:])
 
 
 #: a chunk holds at most this many planes, rows and columns of one frame: a few MB that viewers stream
@@ -88,8 +122,10 @@ def omero(channel: str, vmax: float = 1.0) -> dict:
 class FrameStore:
     """An open store of ``n_frames`` volumes of ``volume_shape``; use :meth:`open`."""
 
-    def __init__(self, path: Path, array, lock_fd):
+    def __init__(self, path: Path, array, lock_fd, levels=()):
         self.path, self.array, self._lock = path, array, lock_fd
+        #: the coarser resolution levels' arrays (level 1, 2, ...): written with each frame
+        self.levels = list(levels)
         #: the brightest voxel this run wrote (the omero display window is widened to it at close)
         self._vmax = 0.0
         #: frames marked done whose chunk failed its checksum when the store was reopened (now to recompute)
@@ -98,10 +134,14 @@ class FrameStore:
     @classmethod
     def open(cls, path, *, fingerprint: str, n_frames: int, volume_shape, dtype, voxel_size_um=None,
              depths_um=None, record: dict | None = None, channel: str = "fluorescence",
-             frame_interval_s: float | None = None) -> "FrameStore":
+             frame_interval_s: float | None = None, levels: int = 1) -> "FrameStore":
         """Create the store (whole, by a rename: never a half-made store) or reopen it for a resume. Chunks
         are keyed with "/" (NGFF 0.4); ``channel`` names the ``omero`` channel, whose display window follows
-        the brightest voxel written; ``frame_interval_s`` gives t its unit (seconds)."""
+        the brightest voxel written; ``frame_interval_s`` gives t its unit (seconds); ``levels`` > 1 adds
+        a multiscale pyramid (each level 2x coarser laterally), written with each frame."""
+        levels = int(levels)
+        if not 1 <= levels <= 8:
+            raise InputError(f"pyramid: {levels} levels; expected 1 to 8")
         import zarr
 
         path = Path(path)
@@ -122,13 +162,16 @@ class FrameStore:
             shutil.rmtree(tmp, ignore_errors=True)
             try:
                 g = zarr.open_group(str(tmp), mode="w", zarr_format=2)
-                g.create_array("0", shape=shape, chunks=chunk_shape(shape), dtype=np.dtype(dtype), fill_value=0,
-                               chunk_key_encoding={"name": "v2", "separator": "/"})
+                for k in range(levels):
+                    ls = level_shape(shape, k)
+                    g.create_array(str(k), shape=ls, chunks=chunk_shape(ls), dtype=np.dtype(dtype), fill_value=0,
+                                   chunk_key_encoding={"name": "v2", "separator": "/"})
                 g.attrs.update({"multiscales": ngff_multiscales(path.name, voxel_size_um, depths_um=depths_um,
-                                                                frame_interval_s=frame_interval_s),
+                                                                frame_interval_s=frame_interval_s, levels=levels),
                                 "omero": omero(channel),
                                 "cm2cl": {"fingerprint": fingerprint, "n_frames": int(n_frames),
                                           "volume_shape": list(shape[1:]), "dtype": np.dtype(dtype).name,
+                                          "levels": levels,
                                           "voxel_size_um": list(voxel_size_um) if voxel_size_um else None,
                                           "depths_um": [float(d) for d in depths_um] if depths_um is not None else None,
                                           **(record or {})}})
@@ -140,7 +183,7 @@ class FrameStore:
                 shutil.rmtree(tmp, ignore_errors=True)
                 if not path.exists():
                     raise InputError(f"output '{path}': cannot create the store ({exc.strerror or exc})") from exc
-        return cls._reopen(path, fingerprint, shape)
+        return cls._reopen(path, fingerprint, shape, levels)
 
     @classmethod
     def open_readonly(cls, path) -> "FrameStore":
@@ -159,10 +202,10 @@ class FrameStore:
         if not done_dir(path).is_dir():
             raise InputError(f"store '{path}': its job record '{done_dir(path).name}' is missing beside it (moved "
                              "without it?); rerunning the job checks and recomputes its frames")
-        return cls(path, arr, None)
+        return cls(path, arr, None, [g[str(k)] for k in range(1, _levels_of(meta, path))])
 
     @classmethod
-    def _reopen(cls, path: Path, fingerprint: str, shape) -> "FrameStore":
+    def _reopen(cls, path: Path, fingerprint: str, shape, levels: int = 1) -> "FrameStore":
         import zarr
 
         try:
@@ -182,6 +225,15 @@ class FrameStore:
                              "refusing to mix results: choose a new output")
         if tuple(arr.shape) != tuple(shape):
             raise InputError(f"output '{path}': holds an array of shape {tuple(arr.shape)}, this job needs {shape}")
+        held = _levels_of(meta, path)
+        if held != levels:
+            raise InputError(f"output '{path}': holds {held} resolution level(s), this job asks for {levels} "
+                             "(--pyramid); give the same, or choose a new output")
+        try:
+            coarse = [g[str(k)] for k in range(1, levels)]
+        except Exception as exc:  # noqa: BLE001 - a level missing or unreadable
+            raise InputError(f"output '{path}': a resolution level of the store cannot be read "
+                             f"({type(exc).__name__}); choose a new output") from exc
         try:
             fd = exclusive_lock(lock_path(path), f"output '{path}': another run is writing this store; wait for "
                                                  "it or choose another output")
@@ -193,7 +245,7 @@ class FrameStore:
         except OSError as exc:
             release_lock(fd, lock_path(path))
             raise InputError(f"output '{path}': its folder cannot be written ({exc.strerror or exc})") from exc
-        store = cls(path, arr, fd)
+        store = cls(path, arr, fd, coarse)
         for i in store.verify():      # a lost or overwritten chunk: its frame is computed again
             log.warning("output '%s': frame %d does not match its checksum; it is computed again", path, i)
             (done_dir(path) / f"{i:08d}").unlink()
@@ -227,9 +279,10 @@ class FrameStore:
                 continue
             try:
                 got = digest(self.read(i), self.array.dtype)
+                levels = [digest(a[int(i)], a.dtype) for a in self.levels]
             except Exception:  # noqa: BLE001 - any failure to decode the chunk is a bad frame
-                got = None
-            if got != want:
+                got, levels = None, None
+            if got != want or (self.levels and levels != self.info(i).get("sha256_levels")):
                 bad.append(i)
         return bad
 
@@ -242,6 +295,14 @@ class FrameStore:
         vol = np.asarray(volume, self.array.dtype)
         info = {**(info or {}), "sha256": digest(vol, self.array.dtype)}
         self.array[int(i)] = vol
+        coarse = vol
+        sums = []
+        for a in self.levels:               # the pyramid, level by level, before the frame counts as done
+            coarse = downsample(coarse).astype(a.dtype)
+            a[int(i)] = coarse
+            sums.append(digest(coarse, a.dtype))
+        if sums:
+            info["sha256_levels"] = sums
         if vol.size:
             self._vmax = max(self._vmax, float(np.nanmax(vol)))
         fault_point(f"after_chunk.{int(i)}")   # tests: kill -9 between chunk and mark
