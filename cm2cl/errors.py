@@ -14,7 +14,13 @@ class DeviceError(CM2Error, RuntimeError):
 
 
 class KernelBuildError(CM2Error, RuntimeError):
-    """An OpenCL program failed to build; the message holds the file name and the build log."""
+    """An OpenCL program failed to build; the message holds the file name and the build log, ``summary``
+    one line (what failed where, and the log's first error) and ``log`` the whole build log."""
+
+    def __init__(self, message: str, summary: str | None = None, log: str | None = None):
+        super().__init__(message)
+        self.summary = summary or message.splitlines()[0] if message else summary
+        self.log = log
 
 
 class JobError(CM2Error, RuntimeError):

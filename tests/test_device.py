@@ -1,4 +1,6 @@
+import numpy as np
 import pyopencl as cl
+import tifffile
 import pytest
 
 from cm2cl import device
@@ -146,3 +148,44 @@ def test_devices_table_names_the_implementation(rt, capsys):
     assert runtime.implementation_of("Portable Computing Language", "OpenCL 3.0 PoCL 3.1+debian  Linux", "3.1") \
         == "PoCL 3.1+debian (system package)"
     assert runtime.implementation_of("NVIDIA CUDA", "OpenCL 3.0 CUDA 12.4.131", "550.54") == "NVIDIA CUDA (driver 550.54)"
+
+
+def test_a_build_failure_is_one_line_with_the_log_in_a_file(rt, tmp_path, capsys, monkeypatch):
+    """Issue 27: a device that cannot compile printed its 9-line build log; now the command prints one line
+    (what failed where, the log's first error, where the whole log is) and exits 2."""
+    import pyopencl as cl
+
+    import cm2cl.solver
+    from cm2cl.cli import main
+    from cm2cl.device import kernels
+    from cm2cl.errors import KernelBuildError
+    from test_admm import bead_problem
+
+    log = ("Build on <pyopencl.Device 'cpu-znver5'>:\n\nwarning: unknown target CPU\n"
+           "error: unable to create target: 'No available targets are compatible with triple'\n"
+           "error: second\n\n(options: -I ...)")
+
+    class Broken:
+        def __init__(self, *a, **k):
+            pass
+
+        def build(self, options=None):
+            raise cl.RuntimeError(f"clBuildProgram failed: BUILD_PROGRAM_FAILURE - {log}")
+
+    monkeypatch.setattr(cl, "Program", Broken)
+    with pytest.raises(KernelBuildError) as info:
+        kernels.program(rt, "splits.cl", np.float32, {"CM2CL_TEST_UNCACHED": 1})
+    exc = info.value
+    assert "\n" not in exc.summary and "unable to create target" in exc.summary and "kernels/splits.cl" in exc.summary
+    assert "error: second" in exc.log
+    monkeypatch.undo()
+    monkeypatch.setattr(cm2cl.solver, "reconstruct", lambda *a, **k: (_ for _ in ()).throw(exc))
+    psf, _, y = bead_problem(6)
+    tifffile.imwrite(tmp_path / "psf.tif", psf.astype(np.float32), photometric="minisblack")
+    tifffile.imwrite(tmp_path / "meas.tif", (y * 1000).astype(np.float32))
+    code = main(["reconstruct", str(tmp_path / "meas.tif"), "--psf", str(tmp_path / "psf.tif"), "-o",
+                 str(tmp_path / "v.ome.tif"), "--quiet"])
+    err = capsys.readouterr().err
+    assert code == 2 and len(err.strip().splitlines()) == 1 and "unable to create target" in err, err
+    path = err.split("full build log: ")[1].split(";")[0]
+    assert "error: second" in open(path).read() and not (tmp_path / "v.ome.tif").exists()

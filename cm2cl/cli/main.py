@@ -7,7 +7,7 @@ import signal
 import sys
 import threading
 
-from ..errors import CM2Error
+from ..errors import CM2Error, KernelBuildError
 from .options import flag_names, with_flags
 
 
@@ -76,6 +76,16 @@ def _raise_terminated(signum, frame):
     raise Terminated()
 
 
+def _save_log(text: str) -> str:
+    """Write a build log to a new file in the temporary folder; its path."""
+    import tempfile
+
+    fd, path = tempfile.mkstemp(prefix="cm2cl-build-", suffix=".log")
+    with open(fd, "w") as f:
+        f.write(text)
+    return path
+
+
 def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -88,6 +98,10 @@ def main(argv=None) -> int:
     logger, handler, level = _log_handler(args)
     try:
         return int(args.func(args) or 0)
+    except KernelBuildError as exc:     # one line; the whole build log in a file
+        print(f"cm2cl: error: {exc.summary}; full build log: {_save_log(exc.log or str(exc))}; a device that "
+              "cannot compile: docs/install.md, 'When you need Debian's pocl-opencl-icd'", file=sys.stderr)
+        return 2
     except CM2Error as exc:
         print(f"cm2cl: error: {with_flags(str(exc), getattr(args, 'flags', {}))}", file=sys.stderr)
         return 2

@@ -76,6 +76,13 @@ def group_of(name: str) -> tuple:
     return next((g for g in GROUPS if name in g), (name,))
 
 
+def first_error(log: str) -> str:
+    """The build log's first line that says error (else its first non-empty line), trimmed to 200 chars."""
+    lines = [ln.strip() for ln in str(log).splitlines() if ln.strip()]
+    hit = next((ln for ln in lines if "error" in ln.lower() and not ln.lower().startswith("build on")), None)
+    return (hit or (lines[0] if lines else "no build log"))[:200]
+
+
 def program(rt, name: str, dtype, defines: dict | None = None):
     """The built program holding ``kernels/<name>`` (with the rest of its group) on runtime ``rt``
     (cached on the runtime)."""
@@ -89,10 +96,9 @@ def program(rt, name: str, dtype, defines: dict | None = None):
         try:
             return cl.Program(rt.context, text).build(options=opts)
         except cl.RuntimeError as exc:  # build failure: pyopencl puts the log in the message
-            raise KernelBuildError(
-                f"OpenCL build of {' + '.join('kernels/' + f for f in files)} failed on '{rt.caps.name}' "
-                f"(options {' '.join(opts)}):\n{exc}"
-            ) from exc
+            what = f"OpenCL build of {' + '.join('kernels/' + f for f in files)} failed on '{rt.caps.name}'"
+            raise KernelBuildError(f"{what} (options {' '.join(opts)}):\n{exc}",
+                                   summary=f"{what}: {first_error(str(exc))}", log=str(exc)) from exc
 
     return rt.cached(("program", files, tuple(opts)), build)
 
