@@ -113,3 +113,33 @@ def test_pyramid_levels_are_2x_means_validate_and_are_checked(rt, tmp_path):
                         dtype=np.float32)
 
 
+
+
+def test_ngff_05_store_validates_resumes_and_opens(rt, tmp_path):
+    """--ngff 0.5: a Zarr format 3 store with the metadata under "ome" and named dimensions, valid by
+    ome-zarr-models' 0.5 models; verify, resume and napari's reader work on it; a resume asking for 0.4
+    is refused."""
+    from ome_zarr_models.v05.image import Image
+
+    from cm2cl.errors import InputError
+    from cm2cl.io.napari_reader import get_reader
+    from cm2cl.jobs.store import FrameStore, read_record
+
+    out = _job(tmp_path, ngff="0.5", pyramid=2, channel="GFP")
+    Image.from_zarr(zarr.open_group(str(out), mode="r"))
+    meta = json.loads((out / "zarr.json").read_text())
+    ome = meta["attributes"]["ome"]
+    assert ome["version"] == "0.5" and [d["path"] for d in ome["multiscales"][0]["datasets"]] == ["0", "1"]
+    assert ome["omero"]["channels"][0]["label"] == "GFP" and ome["omero"]["channels"][0]["window"]["end"] > 0
+    assert json.loads((out / "0" / "zarr.json").read_text())["dimension_names"] == ["t", "z", "y", "x"]
+    store = FrameStore.open_readonly(out)
+    assert store.verify() == [] and sorted(store.done()) == [0, 1]
+    (data, kw, _), = get_reader(str(out))(str(out))
+    assert kw["multiscale"] and kw["metadata"]["channel"] == "GFP" and kw["scale"][1:] == (25.0, 4.0, 4.0)
+    shape = tuple(np.asarray(data[0]).shape[1:])
+    with pytest.raises(InputError, match="is OME-Zarr 0.5"):
+        FrameStore.open(out, fingerprint=read_record(out)["fingerprint"], n_frames=2, volume_shape=shape,
+                        dtype=np.float32, levels=2)
+    with FrameStore.open(out, fingerprint=read_record(out)["fingerprint"], n_frames=2, volume_shape=shape,
+                         dtype=np.float32, levels=2, ngff="0.5") as again:
+        assert again.missing() == []

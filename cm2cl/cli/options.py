@@ -131,6 +131,9 @@ def add_series(r) -> None:
     g.add_argument("--pyramid", type=int, default=1, metavar="LEVELS",
                    help="resolution levels of the store (default 1; e.g. 3: also 2x and 4x coarser laterally, "
                         "for viewers of large frames)")
+    g.add_argument("--ngff", choices=("0.4", "0.5"), default="0.4",
+                   help="OME-Zarr version of the store: 0.4 (Zarr format 2, default, what most readers read) or "
+                        "0.5 (Zarr format 3)")
     g.add_argument("--frame-interval", type=_positive, default=None, metavar="SECONDS",
                    help="time between frames: the store's t axis in seconds (default: in frames)")
 

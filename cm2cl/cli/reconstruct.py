@@ -34,7 +34,8 @@ EPILOG = """examples:
 
 #: options of a series only: (option, whether it was given)
 _SERIES_ONLY = (("--scheduler", lambda a: a.scheduler), ("--warm-start", lambda a: a.warm_start),
-                ("--frame-interval", lambda a: a.frame_interval is not None), ("--pyramid", lambda a: a.pyramid != 1))
+                ("--frame-interval", lambda a: a.frame_interval is not None), ("--pyramid", lambda a: a.pyramid != 1),
+                ("--ngff", lambda a: a.ngff != "0.4"))
 #: options of a single frame that a series does not honour yet: (option, whether it was given); a series
 #: refuses them before any work rather than running without them
 _FRAME_ONLY = (("--dry-run", lambda a: a.dry_run), ("--mask", lambda a: a.mask),

@@ -52,7 +52,8 @@ def command(args, params: ADMMParams) -> int:
     t0 = time.perf_counter()
     with FrameStore.open(out, fingerprint=key, n_frames=len(series), volume_shape=shape, dtype=dt,
                          voxel_size_um=wp.voxel_size_um, depths_um=wp.depths_um, record=record,
-                         channel=args.channel, frame_interval_s=args.frame_interval, levels=args.pyramid) as store:
+                         channel=args.channel, frame_interval_s=args.frame_interval, levels=args.pyramid,
+                         ngff=args.ngff) as store:
         progress = FrameProgress(len(store.missing()), args.quiet, every=args.progress_every)
         try:
             s = run_series(series, h, store, params=params, key=key, executor=ex, dtype=dt, backend=args.backend,

@@ -26,7 +26,7 @@ def get_reader(path):
     name = p.name.lower()
     if name.endswith(TIFF_SUFFIXES) and p.is_file():
         return lambda q: [read_tiff_layer(q)]
-    if name.endswith(".zarr") and (p / ".zattrs").is_file():
+    if name.endswith(".zarr") and ((p / ".zattrs").is_file() or (p / "zarr.json").is_file()):
         return lambda q: [read_zarr_layer(q)]
     if name.endswith(".csv") and p.is_file() and _is_emitters(p):
         return lambda q: [read_emitters_layer(q)]
@@ -65,6 +65,8 @@ def read_zarr_layer(path):
 
     g = zarr.open_group(str(path), mode="r")
     attrs = dict(g.attrs)
+    if isinstance(attrs.get("ome"), dict):       # NGFF 0.5: the metadata under "ome"
+        attrs = {**attrs, **attrs["ome"]}
     ms = (attrs.get("multiscales") or [{}])[0]
     datasets = ms.get("datasets") or [{"path": "0"}]
     ds = datasets[0]

@@ -20,7 +20,7 @@ def reconstruct_series(frames, psf, output, *, client=None, devices=None, warm_s
                        dtype=np.float32, backend: str = "auto", offset=None, voxel_size_um=None, depths_um=None,
                        padded_shape=None, max_memory=None, stream="auto", lean="auto", progress=None,
                        channel: str = "fluorescence", frame_interval_s: float | None = None, pyramid: int = 1,
-                       **params) -> JobSummary:
+                       ngff: str = "0.4", **params) -> JobSummary:
     """Reconstruct every frame of a series into the OME-Zarr store ``output`` (created, or resumed).
 
     Parameters
@@ -42,6 +42,7 @@ def reconstruct_series(frames, psf, output, *, client=None, devices=None, warm_s
     channel, frame_interval_s, pyramid :
         The store's channel name (its ``omero`` block), the time between frames (its t axis in seconds) and
         its resolution levels (1: none coarser; 3: also 2x and 4x coarser laterally).
+    ngff : '0.4' (Zarr format 2, default) or '0.5' (Zarr format 3).
     progress : callable, optional
         ``progress(frame_index, info)`` after each frame (info: iterations, converged, objective, seconds).
     padded_shape, max_memory, stream, lean, dtype, backend :
@@ -85,7 +86,7 @@ def reconstruct_series(frames, psf, output, *, client=None, devices=None, warm_s
 
     with FrameStore.open(output, fingerprint=key, n_frames=len(series), volume_shape=h.shape, dtype=dt,
                          voxel_size_um=vs, depths_um=d, record=record, channel=channel,
-                         frame_interval_s=frame_interval_s, levels=pyramid) as store:
+                         frame_interval_s=frame_interval_s, levels=pyramid, ngff=ngff) as store:
         return run_series(series, h, store, params=prm, key=key, executor=ex, dtype=dt, backend=backend,
                           prepare=lambda a: prepare(a, offset=offset, name="frame"), progress=progress,
                           solver_kw=solver_kw)

@@ -99,6 +99,10 @@ def level_shape(shape, k: int) -> tuple:
     return tuple(shape[:2]) + tuple(-(-int(n) // 2 ** k) for n in shape[2:])
 
 
+#: the OME-Zarr versions a series store is written in: 0.4 (Zarr format 2, the default: what most readers
+#: read today) or 0.5 (Zarr format 3, ome-zarr-py's default)
+NGFF_VERSIONS = ("0.4", "0.5")
+
 #: a chunk holds at most this many planes, rows and columns of one frame: a few MB that viewers stream
 #: (napari, neuroglancer), where one chunk per frame was ~320 MB at 972 x 1296 x 64
 CHUNK_ZYX = (8, 256, 256)
@@ -134,11 +138,14 @@ class FrameStore:
     @classmethod
     def open(cls, path, *, fingerprint: str, n_frames: int, volume_shape, dtype, voxel_size_um=None,
              depths_um=None, record: dict | None = None, channel: str = "fluorescence",
-             frame_interval_s: float | None = None, levels: int = 1) -> "FrameStore":
+             frame_interval_s: float | None = None, levels: int = 1, ngff: str = "0.4") -> "FrameStore":
         """Create the store (whole, by a rename: never a half-made store) or reopen it for a resume. Chunks
         are keyed with "/" (NGFF 0.4); ``channel`` names the ``omero`` channel, whose display window follows
         the brightest voxel written; ``frame_interval_s`` gives t its unit (seconds); ``levels`` > 1 adds
-        a multiscale pyramid (each level 2x coarser laterally), written with each frame."""
+        a multiscale pyramid (each level 2x coarser laterally), written with each frame; ``ngff`` '0.4'
+        (Zarr format 2) or '0.5' (Zarr format 3, the metadata under ``ome``, named dimensions)."""
+        if ngff not in NGFF_VERSIONS:
+            raise InputError(f"ngff: {ngff!r}; expected one of {', '.join(NGFF_VERSIONS)}")
         levels = int(levels)
         if not 1 <= levels <= 8:
             raise InputError(f"pyramid: {levels} levels; expected 1 to 8")
@@ -161,15 +168,23 @@ class FrameStore:
             tmp = path.with_name(f".{path.name}.partial-{os.getpid()}")
             shutil.rmtree(tmp, ignore_errors=True)
             try:
-                g = zarr.open_group(str(tmp), mode="w", zarr_format=2)
+                v3 = ngff == "0.5"
+                g = zarr.open_group(str(tmp), mode="w", zarr_format=3 if v3 else 2)
                 for k in range(levels):
                     ls = level_shape(shape, k)
+                    extra = {"dimension_names": ("t", "z", "y", "x")} if v3 else \
+                        {"chunk_key_encoding": {"name": "v2", "separator": "/"}}
                     g.create_array(str(k), shape=ls, chunks=chunk_shape(ls), dtype=np.dtype(dtype), fill_value=0,
-                                   chunk_key_encoding={"name": "v2", "separator": "/"})
-                g.attrs.update({"multiscales": ngff_multiscales(path.name, voxel_size_um, depths_um=depths_um,
-                                                                frame_interval_s=frame_interval_s, levels=levels),
-                                "omero": omero(channel),
-                                "cm2cl": {"fingerprint": fingerprint, "n_frames": int(n_frames),
+                                   **extra)
+                ms = ngff_multiscales(path.name, voxel_size_um, depths_um=depths_um,
+                                      frame_interval_s=frame_interval_s, levels=levels)
+                if v3:     # NGFF 0.5: the version once, in the ome block
+                    ngff_attrs = {"ome": {"version": "0.5", "omero": omero(channel),
+                                          "multiscales": [{k: v for k, v in m.items() if k != "version"} for m in ms]}}
+                else:
+                    ngff_attrs = {"multiscales": ms, "omero": omero(channel)}
+                g.attrs.update({**ngff_attrs,
+                                "cm2cl": {"ngff": ngff, "fingerprint": fingerprint, "n_frames": int(n_frames),
                                           "volume_shape": list(shape[1:]), "dtype": np.dtype(dtype).name,
                                           "levels": levels,
                                           "voxel_size_um": list(voxel_size_um) if voxel_size_um else None,
@@ -183,7 +198,7 @@ class FrameStore:
                 shutil.rmtree(tmp, ignore_errors=True)
                 if not path.exists():
                     raise InputError(f"output '{path}': cannot create the store ({exc.strerror or exc})") from exc
-        return cls._reopen(path, fingerprint, shape, levels)
+        return cls._reopen(path, fingerprint, shape, levels, ngff)
 
     @classmethod
     def open_readonly(cls, path) -> "FrameStore":
@@ -192,7 +207,7 @@ class FrameStore:
 
         path = Path(path)
         try:
-            g = zarr.open_group(str(path), mode="r", zarr_format=2)
+            g = zarr.open_group(str(path), mode="r")
             meta = dict(g.attrs).get("cm2cl")
             arr = g["0"]
         except Exception as exc:  # noqa: BLE001 - not a zarr group at all
@@ -205,11 +220,11 @@ class FrameStore:
         return cls(path, arr, None, [g[str(k)] for k in range(1, _levels_of(meta, path))])
 
     @classmethod
-    def _reopen(cls, path: Path, fingerprint: str, shape, levels: int = 1) -> "FrameStore":
+    def _reopen(cls, path: Path, fingerprint: str, shape, levels: int = 1, ngff: str = "0.4") -> "FrameStore":
         import zarr
 
         try:
-            g = zarr.open_group(str(path), mode="r+", zarr_format=2)
+            g = zarr.open_group(str(path), mode="r+")
             meta = dict(g.attrs).get("cm2cl")
             arr = g["0"] if isinstance(meta, dict) else None
         except PermissionError as exc:
@@ -225,6 +240,9 @@ class FrameStore:
                              "refusing to mix results: choose a new output")
         if tuple(arr.shape) != tuple(shape):
             raise InputError(f"output '{path}': holds an array of shape {tuple(arr.shape)}, this job needs {shape}")
+        if meta.get("ngff", "0.4") != ngff:
+            raise InputError(f"output '{path}': is OME-Zarr {meta.get('ngff', '0.4')}, this job asks for {ngff} "
+                             "(--ngff); give the same, or choose a new output")
         held = _levels_of(meta, path)
         if held != levels:
             raise InputError(f"output '{path}': holds {held} resolution level(s), this job asks for {levels} "
@@ -333,15 +351,20 @@ class FrameStore:
 
         if self._vmax <= 0:
             return
-        g = zarr.open_group(str(self.path), mode="r+", zarr_format=2)
-        block = dict(g.attrs).get("omero")
+        g = zarr.open_group(str(self.path), mode="r+")
+        attrs = dict(g.attrs)
+        home = dict(attrs["ome"]) if isinstance(attrs.get("ome"), dict) else None    # NGFF 0.5 keeps it there
+        block = (home or attrs).get("omero")
         if not isinstance(block, dict) or not block.get("channels"):
             return
         ch = block["channels"][0]
         meta = dict(g.attrs.get("cm2cl") or {})
         end = max(self._vmax, float(meta.get("display_max") or 0.0))   # over every run on this store
         g.attrs["cm2cl"] = {**meta, "display_max": end}
-        g.attrs["omero"] = omero(ch.get("label", "fluorescence"), end)
+        if home is not None:
+            g.attrs["ome"] = {**home, "omero": omero(ch.get("label", "fluorescence"), end)}
+        else:
+            g.attrs["omero"] = omero(ch.get("label", "fluorescence"), end)
 
     def __enter__(self):
         return self
@@ -354,4 +377,4 @@ def read_record(path) -> dict:
     """The store's cm2cl record (fingerprint, shape, scale, job parameters)."""
     import zarr
 
-    return json.loads(json.dumps(dict(zarr.open_group(str(path), mode="r", zarr_format=2).attrs)["cm2cl"]))
+    return json.loads(json.dumps(dict(zarr.open_group(str(path), mode="r").attrs)["cm2cl"]))
