@@ -143,3 +143,23 @@ def test_ngff_05_store_validates_resumes_and_opens(rt, tmp_path):
     with FrameStore.open(out, fingerprint=read_record(out)["fingerprint"], n_frames=2, volume_shape=shape,
                          dtype=np.float32, levels=2, ngff="0.5") as again:
         assert again.missing() == []
+
+
+def test_ome_zarr_py_reads_the_stores_with_their_scale(rt, tmp_path):
+    """ome-zarr-py's reader (what napari-ome-zarr uses) opens 0.4 and 0.5 stores: every level, the axes
+    with their units, the scales and translation, the channel name."""
+    from ome_zarr.io import parse_url
+    from ome_zarr.reader import Reader
+
+    for ngff in ("0.4", "0.5"):
+        (tmp_path / ngff).mkdir()
+        out = _job(tmp_path / ngff, ngff=ngff, pyramid=2, channel="GCaMP6f", frame_interval_s=0.5)
+        node = list(Reader(parse_url(str(out)))())[0]
+        assert [d.shape[:2] for d in node.data] == [(2, node.data[0].shape[1])] * 2
+        assert node.data[1].shape[2] == -(-node.data[0].shape[2] // 2)
+        md = node.metadata
+        assert [a.get("unit") for a in md["axes"]] == ["second", "micrometer", "micrometer", "micrometer"]
+        t0 = {t["type"]: t for t in md["coordinateTransformations"][0]}
+        assert t0["scale"]["scale"] == [0.5, 25.0, 4.0, 4.0] and t0["translation"]["translation"][1] == -500.0
+        assert md["channel_names"] == ["GCaMP6f"]
+        np.testing.assert_array_equal(np.asarray(node.data[0]), np.asarray(zarr.open_group(str(out), mode="r")["0"]))
