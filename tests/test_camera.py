@@ -72,7 +72,7 @@ def test_cli_refuses_bad_camera_before_any_work(tmp_path, capsys):
 
     psf, _, y = bead_problem(2)
     tifffile.imwrite(tmp_path / "m.tif", y.astype(np.float32))
-    tifffile.imwrite(tmp_path / "p.tif", psf.astype(np.float32))
+    tifffile.imwrite(tmp_path / "p.tif", psf.astype(np.float32), photometric="minisblack")
     out = tmp_path / "v.ome.tif"
     assert main(["reconstruct", str(tmp_path / "m.tif"), "--psf", str(tmp_path / "p.tif"), "-o", str(out),
                  "--camera", "gain=0"]) == 2
