@@ -99,3 +99,50 @@ def test_cli_analyze_pcc_and_particles(tmp_path, capsys):
         err = capsys.readouterr().err
         assert msg in err and len(err.strip().splitlines()) == 1, err
         assert not (tmp_path / "bad").exists()
+
+
+def test_particles_all_of_separated_ones_and_none_in_pure_noise():
+    rng = np.random.default_rng(3)
+    noise = rng.standard_normal((16, 96, 96))
+    assert particle_table(noise, (10.0, 2.0, 2.0)) == []
+    zz, yy, xx = np.meshgrid(*(np.arange(n, dtype=float) for n in noise.shape), indexing="ij")
+    centres = [(4, 15, 15), (8, 15, 60), (12, 70, 30), (5, 75, 80), (10, 45, 45)]
+    vol = 0.05 * noise + sum(np.exp(-0.5 * (((zz - c[0]) / 1.5) ** 2 + ((yy - c[1]) ** 2 + (xx - c[2]) ** 2) / 1.2 ** 2))
+                             for c in centres)
+    rows = particle_table(vol, (10.0, 2.0, 2.0))
+    assert len(rows) == 5 and sorted((round(r["z"]), round(r["y"]), round(r["x"])) for r in rows) == sorted(centres)
+
+
+def test_pcc_is_one_at_the_reference_and_shift_invariant():
+    """Every curve is 1 at the reference plane; moving the PSF on the sensor changes nothing where the
+    window keeps its size (the whole array's, the single lenslet's) and the registration moves nothing out of
+    it (the stack padded with zeros)."""
+    psf = np.pad(Q.array_psf(16, (128, 128)), ((0, 0), (32, 32), (32, 32)))
+    z = np.arange(16) * 10.0
+    a = pcc_curves(psf, z, ref_index=8)
+    b = pcc_curves(np.roll(psf, (3, -5), axis=(1, 2)), z, ref_index=8)
+    for k in a["curves"]:
+        assert a["curves"][k][8] == pytest.approx(1.0)
+    for k in ("3x3", "1"):
+        np.testing.assert_allclose(b["curves"][k], a["curves"][k], atol=1e-9)
+
+
+def test_sbr_of_known_levels_and_the_command(tmp_path, capsys):
+    """Background B, particles of A + B: each patch's SBR is (A + B) / B; the command writes the map."""
+    from cm2cl.analysis.metrics import local_sbr, particle_mask
+
+    rng = np.random.default_rng(0)
+    img = 100.0 + rng.standard_normal((240, 240))
+    yy, xx = np.mgrid[:240, :240]
+    for cy in range(20, 240, 40):
+        for cx in range(20, 240, 40):
+            img[(yy - cy) ** 2 + (xx - cx) ** 2 <= 9] += 50.0
+    mask = particle_mask(img, 80)
+    sbr_map, mean = local_sbr(img, mask, 80)
+    assert sbr_map.shape == (3, 3) and mean == pytest.approx(1.5, rel=0.01)
+    io.write_tiff(tmp_path / "raw.ome.tif", img.astype(np.float32), voxel_size_um=(5.0, 5.0))
+    assert main(["analyze", "sbr", str(tmp_path / "raw.ome.tif"), "-o", str(tmp_path / "s"), "--patch-um", "400"]) == 0
+    rec = json.loads((tmp_path / "s" / "analysis.json").read_text())
+    assert rec["patch_px"] == 80 and rec["mean_sbr"] == pytest.approx(1.5, rel=0.01)
+    with open(tmp_path / "s" / "sbr.csv") as f:
+        assert len(list(csv.reader(f))) == 1 + 9

@@ -51,9 +51,20 @@ def fit_particle(volume, index, half_window=HALF_WINDOW) -> dict:
             "rel_residual": resid, "ok": ok}
 
 
+def noise_floor(volume) -> float:
+    """The value a voxel of pure noise stays below: median + sqrt(2 ln N) x 1.4826 MAD (N voxels: the
+    universal threshold, as the solver's l1 weight), plus one sigma of margin; the median alone for a
+    volume whose MAD is 0 (a sparse reconstruction, mostly zeros)."""
+    v = np.asarray(volume, np.float64).ravel()
+    med = float(np.median(v))
+    sigma = 1.4826 * float(np.median(np.abs(v - med)))
+    return med + (math.sqrt(2.0 * math.log(max(v.size, 2))) + 1.0) * sigma
+
+
 def particle_table(volume, voxel_size_um=(1.0, 1.0, 1.0), depths_um=None, threshold: float = 0.2,
                    min_distance_vox=(1, 2, 2), half_window=HALF_WINDOW) -> list[dict]:
-    """One row per particle (brightest first): ``z_um, y_um, x_um`` (z from ``depths_um`` when given, else
+    """One row per particle (brightest first; local maxima above ``threshold`` x the maximum and above the
+    noise floor, :func:`noise_floor`): ``z_um, y_um, x_um`` (z from ``depths_um`` when given, else
     index x dz; y, x from the first pixel), ``fwhm_lateral_um``, ``fwhm_axial_um``, ``amplitude``,
     ``rel_residual``, ``ok`` and the voxel centre ``z, y, x``."""
     vol = np.asarray(volume, np.float64)
@@ -63,8 +74,11 @@ def particle_table(volume, voxel_size_um=(1.0, 1.0, 1.0), depths_um=None, thresh
     if abs(dy - dx) > 1e-6 * max(dy, dx):
         raise InputError(f"voxel_size_um: the lateral fit needs square pixels, got dy {dy} and dx {dx}")
     det = find_emitters(vol, threshold=threshold, min_distance_vox=min_distance_vox)
+    floor = noise_floor(vol)
     rows = []
-    for idx in det["index"]:
+    for idx, amp in zip(det["index"], det["amplitude"]):
+        if amp <= floor:          # a noise maximum, not a particle
+            continue
         f = fit_particle(vol, idx, half_window)
         z0, y0, x0 = f["center_vox"]
         zu = float(np.interp(z0, np.arange(vol.shape[0]), depths_um)) if depths_um is not None else z0 * dz
@@ -96,4 +110,4 @@ def summary(rows, key=None) -> dict:
     return res
 
 
-__all__ = ["FWHM_PER_SIGMA", "HALF_WINDOW", "fit_particle", "particle_table", "summary"]
+__all__ = ["FWHM_PER_SIGMA", "HALF_WINDOW", "fit_particle", "noise_floor", "particle_table", "summary"]

@@ -6,7 +6,10 @@ writing a table, a record and a figure into one output folder (published whole).
   configuration's full width at PCC = 0.8 (paper Fig. 2A): ``pcc.csv``, ``pcc.png``, ``analysis.json``.
 - ``cm2cl analyze particles VOL.ome.tif -o OUT/``: the particles of a reconstruction, each fitted with a 3D
   Gaussian, their lateral and axial FWHM in um, and the statistics over them (Fig. 2D, 3E):
-  ``particles.csv``, ``particles.png``, ``analysis.json``."""
+  ``particles.csv``, ``particles.png``, ``analysis.json``.
+- ``cm2cl analyze sbr MEAS.tif -o OUT/``: the local signal-to-background ratio of a raw measurement on
+  500 x 500 um patches (Fig. 5B), particle pixels found per patch (5 robust sigmas above its median):
+  ``sbr.csv``, ``sbr.png`` (the map), ``analysis.json``."""
 
 from __future__ import annotations
 
@@ -24,7 +27,8 @@ RECORD = "analysis.json"
 
 
 def register(sub):
-    a = sub.add_parser("analyze", help="characterise a PSF stack (pcc) or a reconstruction (particles)",
+    a = sub.add_parser("analyze", help="characterise a PSF stack (pcc), a reconstruction (particles) or a raw "
+                                       "frame (sbr)",
                        description=__doc__)
     kinds = a.add_subparsers(dest="kind", metavar="KIND", required=True)
     p = kinds.add_parser("pcc", help="axial PCC curves of a PSF stack per view configuration, widths at PCC 0.8")
@@ -39,7 +43,17 @@ def register(sub):
     q.add_argument("-o", "--output", required=True, help="output folder")
     q.add_argument("--threshold", type=float, default=0.2,
                    help="particles are local maxima above this fraction of the volume's maximum (default 0.2)")
-    for s in (p, q):
+    r = kinds.add_parser("sbr", help="local signal-to-background ratio of a raw measurement, patch by patch (Fig. 5B)")
+    r.add_argument("measurement", help="a raw measurement (TIFF; its pixel size in um for --patch-um)")
+    r.add_argument("-o", "--output", required=True, help="output folder")
+    g = r.add_mutually_exclusive_group()
+    g.add_argument("--patch-um", type=float, default=500.0,
+                   help="patch side in um (default 500, the paper's), in the file's pixel size (object space for "
+                        "cm2cl's simulated measurements, which record it)")
+    g.add_argument("--patch-px", type=int, default=None, help="patch side in pixels instead")
+    r.add_argument("--sigmas", type=float, default=5.0,
+                   help="particle pixels lie this many robust sigmas above their patch's median (default 5)")
+    for s in (p, q, r):
         s.set_defaults(func=command)
     return a
 
@@ -48,11 +62,15 @@ def command(args) -> int:
     from .. import io
     from ..io.staging import StagedOutput
 
-    data, meta = io.read_tiff(args.psf if args.kind == "pcc" else args.volume)
-    if data.ndim != 3:
-        raise InputError(f"'{args.psf if args.kind == 'pcc' else args.volume}': expected a 3D stack, got shape "
-                         f"{data.shape}")
-    if args.kind == "pcc":
+    src = {"pcc": "psf", "particles": "volume", "sbr": "measurement"}[args.kind]
+    data, meta = io.read_tiff(getattr(args, src))
+    want = 2 if args.kind == "sbr" else 3
+    if data.ndim != want:
+        raise InputError(f"'{getattr(args, src)}': expected a {want}D {'image' if want == 2 else 'stack'}, got "
+                         f"shape {data.shape}")
+    if args.kind == "sbr":
+        result = _sbr(args, data, meta)
+    elif args.kind == "pcc":
         if not 0 < args.level < 1:
             raise InputError(f"--level: {args.level} is not between 0 and 1")
         result = _pcc(args, data, meta)
@@ -136,6 +154,38 @@ def _particles(args, vol, meta) -> dict:
             "columns": cols, "rows": [[r[c] for c in cols] for r in rows], "png": ("particles", rows), "say": say}
 
 
+def _sbr(args, img, meta) -> dict:
+    from ..analysis.metrics import local_sbr, particle_mask
+
+    if args.sigmas <= 0:
+        raise InputError(f"--sigmas: {args.sigmas} must be positive")
+    if args.patch_px is not None:
+        n, how = int(args.patch_px), f"{args.patch_px} px"
+    else:
+        extra = meta.get("extra") or {}
+        px = extra.get("object_pixel_um") or ((meta.get("voxel_size_um") or [None])[-1]
+                                              if meta.get("unit") == "um" else None)
+        if not px:
+            raise InputError(f"measurement '{args.measurement}': no pixel size in um in its metadata; give "
+                             "--patch-px")
+        n, how = int(round(args.patch_um / float(px))), f"{args.patch_um:g} um ({px:g} um pixels)"
+    if n < 2 or n > min(img.shape):
+        raise InputError(f"patch of {n} px: must be 2 px to the image's {min(img.shape)} px")
+    img = np.asarray(img, np.float64)
+    mask = particle_mask(img, n, args.sigmas)
+    sbr_map, mean = local_sbr(img, mask, n)
+    rows = [[i, j, i * n, j * n, None if not np.isfinite(v) else float(v)]
+            for i in range(sbr_map.shape[0]) for j in range(sbr_map.shape[1]) for v in [sbr_map[i, j]]]
+    finite = sbr_map[np.isfinite(sbr_map)]
+    say = (f"{args.output}: local SBR over {finite.size} of {sbr_map.size} patches of {how}: mean "
+           f"{mean:.3f}" + (f", {finite.min():.3f} .. {finite.max():.3f}" if finite.size else ""))
+    return {"what": "cm2cl analyze sbr", "measurement": str(args.measurement), "patch_px": n, "patch": how,
+            "sigmas": args.sigmas, "mean_sbr": None if not np.isfinite(mean) else mean,
+            "particle_fraction": float(mask.mean()), "table": "sbr.csv", "figure": "sbr.png",
+            "columns": ["patch_row", "patch_col", "y0_px", "x0_px", "sbr"], "rows": rows,
+            "png": ("sbr", sbr_map, n), "say": say}
+
+
 def _write_csv(path, rows, columns):
     with open(path, "w", newline="") as f:
         w = csv.writer(f)
@@ -163,6 +213,13 @@ def _figure(spec, path):
         ax.set_ylabel("PCC with the reference plane")
         ax.set_ylim(min(0.0, min(float(np.min(c)) for c in r["curves"].values())), 1.02)
         ax.legend(title=f"width at PCC {level:g}")
+    elif spec[0] == "sbr":
+        _, m, n = spec
+        ax = fig.add_subplot(1, 1, 1)
+        im = ax.imshow(m, cmap="viridis", extent=(0, m.shape[1] * n, m.shape[0] * n, 0))
+        ax.set_xlabel("x (px)")
+        ax.set_ylabel("y (px)")
+        fig.colorbar(im, ax=ax, label=f"local SBR ({n} px patches)")
     else:
         rows = [r for r in spec[1] if r["ok"]]
         for k, (key, lab) in enumerate((("fwhm_lateral_um", "lateral FWHM (um)"), ("fwhm_axial_um", "axial FWHM (um)"))):
