@@ -71,9 +71,11 @@ def admm(y, psf, params=None, padded_shape=None, dtype=np.float64, workers=None,
     weight = {"u": ctl.tv, "w": ctl.l1}
     for it in range(1, p.max_iter + 1):
         mu = dict(ctl.mu)
-        # x step: (mu_v H^T H + c I) x = H^T (mu_v v - xi) + sum_t (mu_t z_t - dual_t), c = sum_t mu_t
-        c = sum(mu[t.split] for t in regs)
-        B = np.conj(Hs) * rfft(data.rhs(mu["v"]))[None] + rfft(sum(t.rhs(mu[t.split]) for t in regs))
+        # x step: (mu_v H^T H + c I) x = H^T (mu_v v - xi) + sum_t (mu_t z_t - dual_t), c = sum_t mu_t over
+        # the active splits (TV off: its split u = x_prev would only hold x back)
+        mx = {t.split: (mu[t.split] if ctl.active[t.split] else 0.0) for t in regs}
+        c = sum(mx.values())
+        B = np.conj(Hs) * rfft(data.rhs(mu["v"]))[None] + rfft(sum(t.rhs(mx[t.split]) for t in regs))
         HX = (Hs * B).sum(axis=0) / (c + mu["v"] * hn2)
         x_new = irfft((B - mu["v"] * np.conj(Hs) * HX[None]) / c).astype(dt)
         hx = irfft(HX).astype(dt)

@@ -309,7 +309,7 @@ class ADMMSolver:
         ctl = self._start(x0, y_scale, callback, callback_every)
         terms = self.terms
         for it in range(1, self.p.max_iter + 1):
-            xstep.x_step(self, dict(ctl.mu))
+            xstep.x_step(self, ctl.x_mu())
             for part in self.parts:
                 part.swap("x", "g")   # x: new iterate, g: previous one (then scratch)
                 fill(part.rt, part.row.partials)

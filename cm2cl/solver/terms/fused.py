@@ -136,7 +136,7 @@ class DefaultSet:
 
     def tv_finish(self, s, ctl, tau, zn) -> None:
         """u' = z - tau div p, and the next x step's rhs for this iteration's penalties (into g)."""
-        p, (ny, nx), mu = s.p, s.P, ctl.mu
+        p, (ny, nx), mu = s.p, s.P, ctl.x_mu()    # the rhs for the next x step's penalties
         rhs = self.rhs_in_tv_finish
         l1_s, mu_s = self.l1_split
         reads = ("u", "x", "px", "py", "pz") + ((zn,) if tau > 0 else ()) + (("s",) if rhs else ())
