@@ -148,7 +148,7 @@ class Control:
     def x_mu(self) -> dict:
         """The penalties the x step weighs each split with: an inactive identity split (TV off) gets 0, so
         that it is no proximal term mu_u ||x - x_prev||^2 holding x back (u = x_prev there); with it, the
-        default solve needed 1.6x the iterations to come within 1% of the optimum (docs/accuracy_vs_time.md)."""
+        default solve needed 1.3-1.7x the iterations to come within 1% of the optimum (docs/quality.md)."""
         return {n: (mu if self.active.get(n, True) or n == "v" else 0.0) for n, mu in self.mu.items()}
 
     # the default splits' penalties by name
