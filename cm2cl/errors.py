@@ -19,7 +19,7 @@ class KernelBuildError(CM2Error, RuntimeError):
 
     def __init__(self, message: str, summary: str | None = None, log: str | None = None):
         super().__init__(message)
-        self.summary = summary or message.splitlines()[0] if message else summary
+        self.summary = summary or (message.splitlines() or [""])[0]
         self.log = log
 
 

@@ -18,7 +18,7 @@ from .metrics import axial_pcc, width_at_level
 PCC_LEVEL = 0.8
 
 
-def _groups(values, n_expected=None) -> list[list[int]]:
+def _groups(values) -> list[list[int]]:
     """Indices of ``values`` grouped into rows (or columns): split the sorted values where a gap exceeds
     half the largest gap (a single group when all are within a fifth of the spread of the others)."""
     order = np.argsort(values)

@@ -138,32 +138,24 @@ def add_series(r) -> None:
                    help="time between frames: the store's t axis in seconds (default: in frames)")
 
 
-def _seconds(text: str) -> float:
-    """A finite number of seconds >= 0 (argparse type)."""
+def _number(positive: bool, what: str):
+    """An argparse type: a finite number, > 0 (``positive``) or >= 0, else one line saying it is not ``what``."""
     import argparse
     import math
 
-    try:
-        v = float(text)
-    except ValueError:
-        v = float("nan")
-    if not math.isfinite(v) or v < 0:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number of seconds >= 0")
-    return v
+    def parse(text: str) -> float:
+        try:
+            v = float(text)
+        except ValueError:
+            v = float("nan")
+        if not math.isfinite(v) or v < 0 or (positive and v == 0):
+            raise argparse.ArgumentTypeError(f"{text!r} is not {what}")
+        return v
+    return parse
 
 
-def _positive(text: str) -> float:
-    """A finite number > 0 (argparse type)."""
-    import argparse
-    import math
-
-    try:
-        v = float(text)
-    except ValueError:
-        v = float("nan")
-    if not math.isfinite(v) or v <= 0:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a positive number")
-    return v
+_seconds = _number(False, "a number of seconds >= 0")
+_positive = _number(True, "a positive number")
 
 
 def add_output(r) -> None:
