@@ -7,6 +7,10 @@ writing a table, a record and a figure into one output folder (published whole).
 - ``cm2cl analyze particles VOL.ome.tif -o OUT/``: the particles of a reconstruction, each fitted with a 3D
   Gaussian, their lateral and axial FWHM in um, and the statistics over them (Fig. 2D, 3E):
   ``particles.csv``, ``particles.png``, ``analysis.json``.
+- ``cm2cl analyze mtf PSF.ome.tif -o OUT/``: the 3D MTF of an axial PSF stack (Fig. 2B): its support above
+  a floor, the lateral cutoff and bandwidth B_x, the axial bandwidth B_z at the cutoff, and the 3D SBP
+  FOV x DOF x B_z B_x^2 / 2 from these measured bandwidths (Methods): ``mtf.csv`` (B_z along f_x),
+  ``mtf.png`` (the f_x-f_z section, log scale), ``analysis.json``.
 - ``cm2cl analyze sbr MEAS.tif -o OUT/``: the local signal-to-background ratio of a raw measurement on
   500 x 500 um patches (Fig. 5B), particle pixels found per patch (5 robust sigmas above its median):
   ``sbr.csv``, ``sbr.png`` (the map), ``analysis.json``."""
@@ -27,7 +31,7 @@ RECORD = "analysis.json"
 
 
 def register(sub):
-    a = sub.add_parser("analyze", help="characterise a PSF stack (pcc), a reconstruction (particles) or a raw "
+    a = sub.add_parser("analyze", help="characterise a PSF stack (pcc, mtf), a reconstruction (particles) or a raw "
                                        "frame (sbr)",
                        description=__doc__)
     kinds = a.add_subparsers(dest="kind", metavar="KIND", required=True)
@@ -38,6 +42,23 @@ def register(sub):
     p.add_argument("--ref-z", type=float, default=None, metavar="UM",
                    help="depth of the reference plane (default: the sharpest plane)")
     p.add_argument("--level", type=float, default=0.8, help="PCC level of the widths (default 0.8, the paper's)")
+    t = kinds.add_parser("mtf", help="3D MTF of an axial PSF stack: lateral and axial bandwidths and the 3D SBP")
+    t.add_argument("psf", help="the axial PSF stack (OME-TIFF with its depths and object-space voxel size)")
+    t.add_argument("-o", "--output", required=True, help="output folder")
+    t.add_argument("--floor", type=float, default=0.01,
+                   help="the support is where the MTF exceeds this fraction of its zero-frequency value, or twice "
+                        "the noise floor if higher (default 0.01)")
+    c = t.add_mutually_exclusive_group()
+    c.add_argument("--lateral-cutoff", type=float, default=None, metavar="PER_UM",
+                   help="lateral cutoff frequency in cycles / um (default: measured from the MTF's support)")
+    c.add_argument("--lateral-fwhm", type=float, default=None, metavar="UM",
+                   help="a measured lateral resolution (FWHM, um): cutoff 1 / (2 FWHM), as the paper takes it")
+    t.add_argument("--pixel-um", type=float, default=None,
+                   help="object-space pixel of the stack in um (default: from its metadata)")
+    t.add_argument("--fov-mm", default=None, metavar="H,W",
+                   help="measured field of view for the SBP, mm (default: the stack's field in object space)")
+    t.add_argument("--dof-mm", type=float, default=None,
+                   help="measured depth of field for the SBP, mm (default: the stack's depth range)")
     q = kinds.add_parser("particles", help="3D Gaussian fits of the particles of a reconstruction: FWHM in um")
     q.add_argument("volume", help="a reconstruction (OME-TIFF with its voxel size)")
     q.add_argument("-o", "--output", required=True, help="output folder")
@@ -53,7 +74,7 @@ def register(sub):
     g.add_argument("--patch-px", type=int, default=None, help="patch side in pixels instead")
     r.add_argument("--sigmas", type=float, default=5.0,
                    help="particle pixels lie this many robust sigmas above their patch's median (default 5)")
-    for s in (p, q, r):
+    for s in (p, t, q, r):
         s.set_defaults(func=command)
     return a
 
@@ -62,7 +83,7 @@ def command(args) -> int:
     from .. import io
     from ..io.staging import StagedOutput
 
-    src = {"pcc": "psf", "particles": "volume", "sbr": "measurement"}[args.kind]
+    src = {"pcc": "psf", "mtf": "psf", "particles": "volume", "sbr": "measurement"}[args.kind]
     data, meta = io.read_tiff(getattr(args, src))
     want = 2 if args.kind == "sbr" else 3
     if data.ndim != want:
@@ -74,6 +95,8 @@ def command(args) -> int:
         if not 0 < args.level < 1:
             raise InputError(f"--level: {args.level} is not between 0 and 1")
         result = _pcc(args, data, meta)
+    elif args.kind == "mtf":
+        result = _mtf(args, data, meta)
     else:
         if not 0 < args.threshold < 1:
             raise InputError(f"--threshold: {args.threshold} is not between 0 and 1")
@@ -128,6 +151,54 @@ def _pcc(args, psf, meta) -> dict:
             "lenslet_centroids_px": r["grid"]["centroids"].tolist(), "table": "pcc.csv", "figure": "pcc.png",
             "columns": [f"z_{unit}"] + [f"pcc_{n}" for n in names], "rows": rows,
             "png": ("pcc", z, unit, r, args.level), "say": say}
+
+
+def _positive(value, flag):
+    if value is not None and not (math.isfinite(value) and value > 0):
+        raise InputError(f"{flag}: must be a positive number, got {value:g}")
+    return value
+
+
+def _mtf(args, psf, meta) -> dict:
+    from ..analysis.mtf import mtf_analysis
+
+    for flag in ("floor", "lateral_cutoff", "lateral_fwhm", "pixel_um", "dof_mm"):
+        _positive(getattr(args, flag), "--" + flag.replace("_", "-"))
+    fov = None
+    if args.fov_mm is not None:
+        try:
+            fov = tuple(float(v) for v in args.fov_mm.split(","))
+        except ValueError:
+            fov = ()
+        if len(fov) != 2 or not all(math.isfinite(v) and v > 0 for v in fov):
+            raise InputError(f"--fov-mm: expected two positive numbers H,W in mm, got {args.fov_mm!r}")
+    z, unit = _depths(meta, psf.shape[0])
+    if unit != "um":
+        raise InputError(f"PSF stack '{args.psf}': no depths in um in its metadata; the MTF needs the plane spacing")
+    dzs = np.diff(z)
+    if dzs.size == 0 or np.any(dzs <= 0) or np.ptp(dzs) > 1e-3 * abs(float(np.mean(dzs))):
+        raise InputError(f"PSF stack '{args.psf}': its depths are not evenly spaced; the 3D MTF needs even steps")
+    px = args.pixel_um
+    if px is None:
+        vs, space = meta.get("voxel_size_um"), (meta.get("extra") or {}).get("voxel_space")
+        if meta.get("unit") == "um" and vs and len(vs) == 3 and space != "sensor":
+            px = float(vs[-1])
+        else:
+            raise InputError(f"PSF stack '{args.psf}': no object-space pixel size in its metadata; give --pixel-um")
+    cutoff = args.lateral_cutoff if args.lateral_fwhm is None else 1.0 / (2.0 * args.lateral_fwhm)
+    r = mtf_analysis(psf, float(np.mean(dzs)), px, px, floor=args.floor, lateral_cutoff_um=cutoff, fov_mm=fov,
+                     dof_mm=args.dof_mm)
+    say = (f"{args.output}: lateral cutoff {r['lateral_cutoff_per_um']:.4g} / um (B_x {r['lateral_bandwidth_per_um']:.4g}"
+           f" / um), axial bandwidth at it B_z {r['axial_bandwidth_per_um']:.4g} / um, 3D SBP {r['sbp'] / 1e6:.3g} M "
+           f"({r['fov_mm'][0]:.3g} x {r['fov_mm'][1]:.3g} mm x {r['dof_mm']:.3g} mm)")
+    keys = ("floor", "lateral_cutoff_measured_per_um", "lateral_cutoff_per_um", "lateral_bandwidth_per_um",
+            "axial_bandwidth_per_um", "bandwidth_per_um3", "sbp", "fov_mm", "dof_mm", "fov_given", "dof_given")
+    return {"what": "cm2cl analyze mtf", "psf": str(args.psf), "pixel_um": px, "dz_um": float(np.mean(dzs)),
+            "cutoff_from": "measured" if cutoff is None else ("--lateral-fwhm" if args.lateral_fwhm else
+                                                              "--lateral-cutoff"),
+            **{k: r[k] for k in keys}, "table": "mtf.csv", "figure": "mtf.png",
+            "columns": ["fx_per_um", "axial_extent_per_um"], "rows": [list(p) for p in r["profile"]],
+            "png": ("mtf", r), "say": say}
 
 
 def _particles(args, vol, meta) -> dict:
@@ -213,6 +284,22 @@ def _figure(spec, path):
         ax.set_ylabel("PCC with the reference plane")
         ax.set_ylim(min(0.0, min(float(np.min(c)) for c in r["curves"].values())), 1.02)
         ax.legend(title=f"width at PCC {level:g}")
+    elif spec[0] == "mtf":
+        r = spec[1]
+        m = r["mtf"]
+        sec = m["mtf"][:, m["mtf"].shape[1] // 2, :]
+        ax = fig.add_subplot(1, 1, 1)
+        ext = (m["fx"][0], m["fx"][-1], m["fz"][0], m["fz"][-1])
+        im = ax.imshow(np.log10(np.maximum(sec, 1e-6)), origin="lower", extent=ext, aspect="auto", cmap="magma",
+                       vmin=-4, vmax=0)
+        ax.contour(m["fx"], m["fz"], sec, levels=[r["floor"]["used"]], colors="c", linewidths=0.8)
+        fc = r["lateral_cutoff_per_um"]
+        for s in (-fc, fc):
+            ax.axvline(s, color="w", lw=0.8, ls="--")
+        ax.set_xlabel("f_x (1/um)")
+        ax.set_ylabel("f_z (1/um)")
+        ax.set_title(f"B_x {r['lateral_bandwidth_per_um']:.3g} / um, B_z {r['axial_bandwidth_per_um']:.3g} / um at f_c")
+        fig.colorbar(im, ax=ax, label="log10 MTF (support: cyan)")
     elif spec[0] == "sbr":
         _, m, n = spec
         ax = fig.add_subplot(1, 1, 1)
