@@ -146,3 +146,58 @@ def test_sbr_of_known_levels_and_the_command(tmp_path, capsys):
     assert rec["patch_px"] == 80 and rec["mean_sbr"] == pytest.approx(1.5, rel=0.01)
     with open(tmp_path / "s" / "sbr.csv") as f:
         assert len(list(csv.reader(f))) == 1 + 9
+
+
+def _particle_volume(centres, shape=(30, 80, 80), sz=1.5, sr=1.2, amps=None, noise=0.002, seed=3):
+    rng = np.random.default_rng(seed)
+    zz, yy, xx = np.meshgrid(*(np.arange(n, dtype=float) for n in shape), indexing="ij")
+    amps = amps or [1.0] * len(centres)
+    vol = sum(a * np.exp(-0.5 * (((zz - c[0]) / sz) ** 2 + ((yy - c[1]) ** 2 + (xx - c[2]) ** 2) / sr ** 2))
+              for a, c in zip(amps, centres))
+    return vol + noise * rng.standard_normal(shape)
+
+
+def test_depth_range_per_patch_is_the_spread_of_centres_plus_the_elongation():
+    """Voxels 20 um deep and 10 um wide, patches of 400 um = 40 px: patch (0, 0) holds particles at planes 5,
+    12 and 20 (range 300 um + elongation), patch (1, 1) planes 8 and 10 (40 um + elongation), patch (0, 1) one
+    particle (the elongation alone); with the default elongation the particles' own median axial FWHM."""
+    from cm2cl.analysis.particles import depth_range
+
+    centres = [(5, 10, 12), (12, 25, 30), (20, 15, 20), (8, 50, 55), (10, 60, 70), (14, 12, 60)]
+    vs = (20.0, 10.0, 10.0)
+    rows = particle_table(_particle_volume(centres), vs, threshold=0.3)
+    assert len(rows) == 6
+    r = depth_range(rows, (800.0, 800.0), 400.0, elongation_um=372.0)
+    got = {(p["patch_row"], p["patch_col"]): p for p in r["patches"]}
+    assert set(got) == {(0, 0), (1, 1), (0, 1)} and r["patches_total"] == 4
+    assert got[(0, 0)]["range_um"] == pytest.approx(300 + 372, abs=2) and got[(0, 0)]["particles"] == 3
+    assert got[(1, 1)]["range_um"] == pytest.approx(40 + 372, abs=2)
+    assert got[(0, 1)]["range_um"] == pytest.approx(372)
+    v = [672, 412, 372]
+    assert r["mean_um"] == pytest.approx(np.mean(v), abs=2) and r["std_um"] == pytest.approx(np.std(v, ddof=1), abs=2)
+    two = depth_range(rows, (800.0, 800.0), 400.0, elongation_um=0.0, min_particles=2)
+    assert len(two["patches"]) == 2 and two["mean_um"] == pytest.approx(170, abs=2)
+    own = depth_range(rows, (800.0, 800.0), 400.0)
+    assert own["elongation_um"] == pytest.approx(FWHM_PER_SIGMA * 1.5 * 20.0, rel=0.05)
+    assert own["elongation_from"].startswith("median")
+
+
+def test_cli_analyze_depth_range(tmp_path, capsys):
+    centres = [(5, 10, 12), (12, 25, 30), (20, 15, 20), (8, 50, 55), (10, 60, 70)]
+    io.write_tiff(tmp_path / "vol.ome.tif", _particle_volume(centres).astype(np.float32),
+                  voxel_size_um=(20.0, 10.0, 10.0))
+    out = tmp_path / "dr"
+    assert main(["analyze", "depth-range", str(tmp_path / "vol.ome.tif"), "-o", str(out), "--patch-um", "400",
+                 "--elongation-um", "372", "--threshold", "0.3"]) == 0
+    assert "depth range 542 +- 184 um over 2 of 4 patches" in capsys.readouterr().out
+    rec = json.loads((out / "analysis.json").read_text())
+    assert rec["mean_um"] == pytest.approx(542, abs=2) and rec["particles"] == 5
+    with open(out / "depth_range.csv") as f:
+        table = list(csv.reader(f))
+    assert table[0][:2] == ["patch_row", "patch_col"] and len(table) == 3
+    assert (out / "depth_range.png").stat().st_size > 1000
+    for bad, msg in ((["--patch-um", "2000"], "larger than the volume's field"), (["--patch-um", "-5"], "--patch-um"),
+                     (["--elongation-um", "nan"], "--elongation-um"), (["--min-particles", "0"], "--min-particles")):
+        assert main(["analyze", "depth-range", str(tmp_path / "vol.ome.tif"), "-o", str(tmp_path / "x")] + bad) != 0
+        err = capsys.readouterr().err
+        assert msg in err and len(err.strip().splitlines()) == 1 and not (tmp_path / "x").exists()

@@ -11,6 +11,9 @@ writing a table, a record and a figure into one output folder (published whole).
   a floor, the lateral cutoff and bandwidth B_x, the axial bandwidth B_z at the cutoff, and the 3D SBP
   FOV x DOF x B_z B_x^2 / 2 from these measured bandwidths (Methods): ``mtf.csv`` (B_z along f_x),
   ``mtf.png`` (the f_x-f_z section, log scale), ``analysis.json``.
+- ``cm2cl analyze depth-range VOL.ome.tif -o OUT/``: the reconstructed depth range (Fig. 5B): the particles'
+  centres in each 800 x 800 um patch, max z - min z plus one particle's axial elongation, mean and standard
+  deviation over the patches: ``depth_range.csv``, ``depth_range.png`` (the map), ``analysis.json``.
 - ``cm2cl analyze sbr MEAS.tif -o OUT/``: the local signal-to-background ratio of a raw measurement on
   500 x 500 um patches (Fig. 5B), particle pixels found per patch (5 robust sigmas above its median):
   ``sbr.csv``, ``sbr.png`` (the map), ``analysis.json``."""
@@ -31,7 +34,7 @@ RECORD = "analysis.json"
 
 
 def register(sub):
-    a = sub.add_parser("analyze", help="characterise a PSF stack (pcc, mtf), a reconstruction (particles) or a raw "
+    a = sub.add_parser("analyze", help="characterise a PSF stack (pcc, mtf), a reconstruction (particles, depth-range) or a raw "
                                        "frame (sbr)",
                        description=__doc__)
     kinds = a.add_subparsers(dest="kind", metavar="KIND", required=True)
@@ -64,6 +67,17 @@ def register(sub):
     q.add_argument("-o", "--output", required=True, help="output folder")
     q.add_argument("--threshold", type=float, default=0.2,
                    help="particles are local maxima above this fraction of the volume's maximum (default 0.2)")
+    d = kinds.add_parser("depth-range", help="reconstructed depth range per lateral patch (Fig. 5B)")
+    d.add_argument("volume", help="a reconstruction (OME-TIFF with its voxel size)")
+    d.add_argument("-o", "--output", required=True, help="output folder")
+    d.add_argument("--patch-um", type=float, default=800.0, help="patch side in um (default 800, the paper's)")
+    d.add_argument("--elongation-um", type=float, default=None,
+                   help="axial elongation of one particle added to each range (default: the median axial FWHM "
+                        "of the fitted particles; the paper adds 372 um for its 25-um particles)")
+    d.add_argument("--threshold", type=float, default=0.2,
+                   help="particles are local maxima above this fraction of the volume's maximum (default 0.2)")
+    d.add_argument("--min-particles", type=int, default=1, help="patches with fewer particles are left out "
+                                                                 "(default 1)")
     r = kinds.add_parser("sbr", help="local signal-to-background ratio of a raw measurement, patch by patch (Fig. 5B)")
     r.add_argument("measurement", help="a raw measurement (TIFF; its pixel size in um for --patch-um)")
     r.add_argument("-o", "--output", required=True, help="output folder")
@@ -74,7 +88,7 @@ def register(sub):
     g.add_argument("--patch-px", type=int, default=None, help="patch side in pixels instead")
     r.add_argument("--sigmas", type=float, default=5.0,
                    help="particle pixels lie this many robust sigmas above their patch's median (default 5)")
-    for s in (p, t, q, r):
+    for s in (p, t, q, d, r):
         s.set_defaults(func=command)
     return a
 
@@ -83,7 +97,8 @@ def command(args) -> int:
     from .. import io
     from ..io.staging import StagedOutput
 
-    src = {"pcc": "psf", "mtf": "psf", "particles": "volume", "sbr": "measurement"}[args.kind]
+    src = {"pcc": "psf", "mtf": "psf", "particles": "volume", "depth-range": "volume",
+           "sbr": "measurement"}[args.kind]
     data, meta = io.read_tiff(getattr(args, src))
     want = 2 if args.kind == "sbr" else 3
     if data.ndim != want:
@@ -100,7 +115,7 @@ def command(args) -> int:
     else:
         if not 0 < args.threshold < 1:
             raise InputError(f"--threshold: {args.threshold} is not between 0 and 1")
-        result = _particles(args, data, meta)
+        result = _particles(args, data, meta) if args.kind == "particles" else _depth_range(args, data, meta)
     with StagedOutput(args.output, RECORD, what="--output") as stage:
         png = result.pop("png")
         _write_csv(stage.dir / result["table"], result.pop("rows"), result.pop("columns"))
@@ -201,8 +216,9 @@ def _mtf(args, psf, meta) -> dict:
             "png": ("mtf", r), "say": say}
 
 
-def _particles(args, vol, meta) -> dict:
-    from ..analysis.particles import particle_table, summary
+def _particle_rows(args, vol, meta):
+    """The volume's voxel size (um, checked) and its particles (:func:`particle_table`), at least one."""
+    from ..analysis.particles import particle_table
 
     vs = meta.get("voxel_size_um")
     if meta.get("unit") != "um" or not vs or len(vs) != 3:
@@ -211,6 +227,42 @@ def _particles(args, vol, meta) -> dict:
     rows = particle_table(vol, vs, meta.get("depths_um"), threshold=args.threshold)
     if not rows:
         raise InputError(f"volume '{args.volume}': no particle above {args.threshold:g} of its maximum")
+    return vs, rows
+
+
+def _depth_range(args, vol, meta) -> dict:
+    from ..analysis.particles import depth_range
+
+    _positive(args.patch_um, "--patch-um")
+    if args.elongation_um is not None and not (math.isfinite(args.elongation_um) and args.elongation_um >= 0):
+        raise InputError(f"--elongation-um: must be a number >= 0, got {args.elongation_um:g}")
+    if args.min_particles < 1:
+        raise InputError(f"--min-particles: must be at least 1, got {args.min_particles}")
+    vs = meta.get("voxel_size_um")
+    field = (vol.shape[1] * float(vs[1]), vol.shape[2] * float(vs[2])) if vs and len(vs) == 3 else None
+    if field is not None and args.patch_um > min(field):
+        raise InputError(f"--patch-um: {args.patch_um:g} um is larger than the volume's field "
+                         f"{field[0]:g} x {field[1]:g} um")
+    vs, rows = _particle_rows(args, vol, meta)
+    r = depth_range(rows, field, args.patch_um, args.elongation_um, args.min_particles)
+    if not r["patches"]:
+        raise InputError(f"volume '{args.volume}': no {args.patch_um:g}-um patch holds {args.min_particles} particle(s)")
+    cols = ["patch_row", "patch_col", "y0_um", "x0_um", "particles", "z_min_um", "z_max_um", "range_um"]
+    std = "-" if r["std_um"] is None else f"{r['std_um']:.0f}"
+    say = (f"{args.output}: depth range {r['mean_um']:.0f} +- {std} um over {len(r['patches'])} of "
+           f"{r['patches_total']} patches of {args.patch_um:g} um ({len(rows)} particles, elongation "
+           f"{r['elongation_um']:.0f} um)")
+    return {"what": "cm2cl analyze depth-range", "volume": str(args.volume), "threshold": args.threshold,
+            "voxel_size_um": list(vs), "particles": len(rows), **{k: v for k, v in r.items() if k != "patches"},
+            "min_particles": args.min_particles, "table": "depth_range.csv", "figure": "depth_range.png",
+            "columns": cols, "rows": [[p[c] for c in cols] for p in r["patches"]],
+            "png": ("depth-range", r, vol.shape[1:], vs), "say": say}
+
+
+def _particles(args, vol, meta) -> dict:
+    from ..analysis.particles import summary
+
+    vs, rows = _particle_rows(args, vol, meta)
     s = summary(rows)
     cols = ["z_um", "y_um", "x_um", "fwhm_lateral_um", "fwhm_axial_um", "amplitude", "rel_residual", "ok"]
     a = s["all"]
@@ -300,6 +352,17 @@ def _figure(spec, path):
         ax.set_ylabel("f_z (1/um)")
         ax.set_title(f"B_x {r['lateral_bandwidth_per_um']:.3g} / um, B_z {r['axial_bandwidth_per_um']:.3g} / um at f_c")
         fig.colorbar(im, ax=ax, label="log10 MTF (support: cyan)")
+    elif spec[0] == "depth-range":
+        _, r, (ny, nx), vs = spec
+        n = r["patch_um"]
+        grid = np.full((int(ny * vs[1] // n), int(nx * vs[2] // n)), np.nan)
+        for p in r["patches"]:
+            grid[p["patch_row"], p["patch_col"]] = p["range_um"]
+        ax = fig.add_subplot(1, 1, 1)
+        im = ax.imshow(grid, cmap="viridis", extent=(0, grid.shape[1] * n / 1000, grid.shape[0] * n / 1000, 0))
+        ax.set_xlabel("x (mm)")
+        ax.set_ylabel("y (mm)")
+        fig.colorbar(im, ax=ax, label=f"depth range (um, {n:g}-um patches)")
     elif spec[0] == "sbr":
         _, m, n = spec
         ax = fig.add_subplot(1, 1, 1)
