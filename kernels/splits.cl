@@ -5,8 +5,8 @@
 /* After the x step, for one slab of `planes` planes, the w split and its dual from the split's state s
  * (split_w, split_rho in common.cl; l1_s, mu_s: the weight and penalty s was made with):
  *     w = max(s - l1_s l1w[z]/mu_s, 0),  rho = min(mu_s s, l1_s l1w[z])          (the previous ones)
- *     s' = x + rho/mu_w
- *     w' = max(s' - l1 l1w[z]/mu_w, 0),  rho' = rho + mu_w (x - w') = min(mu_w s', l1 l1w[z])
+ *     s' = xr + rho/mu_w,   xr = alpha x + (1 - alpha) w   (over-relaxation; alpha = 1: xr = x)
+ *     w' = max(s' - l1 l1w[z]/mu_w, 0),  rho' = rho + mu_w (xr - w') = min(mu_w s', l1 l1w[z])
  * (l1w: the weight of each plane of the slab in the l1 term).
  * Reduces into slots slot0 + (0..7): ||x - x_old||^2, ||x||^2, sum l1w|x|, TV(x), ||x - w'||^2, ||w' - w||^2,
  * ||w'||^2, ||rho'||^2 (the last two scale the relative residuals of the stopping rule); TV(x) with
@@ -15,7 +15,7 @@
 __kernel void update_w(__global const real_t *x, __global const real_t *x_next, const int has_next,
                        __global const real_t *x_old, __global real_t *s,
                        const real_t l1, __global const real_t *l1w, const real_t mu_w,
-                       const real_t l1_s, const real_t mu_s, const real_t aw, const int iso,
+                       const real_t l1_s, const real_t mu_s, const real_t aw, const int iso, const real_t alpha,
                        const int planes, const int ny, const int nx, const int rows,
                        __global real_t *partials, const int pstride, const int slot0) {
     int xb0, xb1, y0, y1;
@@ -32,9 +32,10 @@ __kernel void update_w(__global const real_t *x, __global const real_t *x_next, 
                 const int x0 = xb * VW, cnt = nx - x0;
                 const size_t i = slab_index(z, y, x0, ny, nx);
                 const realv xi = load_row(x, i, cnt), si = load_row(s, i, cnt);
-                const realv sn = xi + split_rho(si, cs, mu_s) / mu_w;
+                const realv wo = split_w(si, cs, mu_s);
+                const realv sn = alpha * xi + (1 - alpha) * wo + split_rho(si, cs, mu_s) / mu_w;
                 const realv wn = split_w(sn, c, mu_w), rn = split_rho(sn, c, mu_w);
-                const realv dx = xi - load_row(x_old, i, cnt), pw = xi - wn, dw = wn - split_w(si, cs, mu_s);
+                const realv dx = xi - load_row(x_old, i, cnt), pw = xi - wn, dw = wn - wo;
                 store_row(sn, s, i, cnt);
                 const realv tv = tv_density(x, x_next, has_next, i, plane, z, planes, cnt, xi, y, ny, nx, aw, iso);
                 b0 += lanes_below(dx * dx, cnt);
@@ -65,14 +66,14 @@ __kernel void split_state(__global real_t *out, __global const real_t *s, const 
     out[i] = rho ? split_rho(s[i], c, mu_s) : split_w(s[i], c, mu_s);
 }
 
-/* The v split on the padded plane (py, px), sensor window (my, mx) at (oy, ox):
- *   v' = (C^T y + mu_v hx + xi) / (C^T C + mu_v);  xi += mu_v (hx - v');  v = v'
+/* The v split on the padded plane (py, px), sensor window (my, mx) at (oy, ox), over-relaxed by alpha:
+ *   hr = alpha hx + (1 - alpha) v;  v' = (C^T y + mu_v hr + xi) / (C^T C + mu_v);  xi += mu_v (hr - v');  v = v'
  * cty = C^T y (zero outside the window), hx = H x.
  * Reduces into slots slot0 + (0..5): ||hx - v'||^2, ||v' - v||^2, ||C hx - y||^2, ||hx||^2, ||v'||^2,
  * ||xi'||^2. */
 __kernel void update_v(__global real_t *v, __global real_t *xi, __global const real_t *hx,
                        __global const real_t *cty, __global const real_t *cw, const real_t mu_v,
-                       const int py, const int px, const int rows,
+                       const real_t alpha, const int py, const int px, const int rows,
                        __global real_t *partials, const int pstride, const int slot0) {
     /* cty: the measurement embedded in the padded grid; cw: each pixel's weight in the data term (1 on
        the sensor, 0 outside it and on masked pixels): v = (cw y + mu_v Hx + xi) / (cw + mu_v).
@@ -86,10 +87,11 @@ __kernel void update_v(__global real_t *v, __global real_t *xi, __global const r
             const int x0 = xb * VW, cnt = px - x0;
             const size_t i = slab_index(0, y, x0, py, px);
             const realv h = load_row(hx, i, cnt), m = load_row(cw, i, cnt), t = load_row(cty, i, cnt);
-            const realv xo = load_row(xi, i, cnt);
-            const realv vn = (m * t + mu_v * h + xo) / (m + mu_v);
-            const realv pv = h - vn, dv = vn - load_row(v, i, cnt);
-            const realv xn = xo + mu_v * pv;
+            const realv xo = load_row(xi, i, cnt), vo = load_row(v, i, cnt);
+            const realv hr = alpha * h + (1 - alpha) * vo;
+            const realv vn = (m * t + mu_v * hr + xo) / (m + mu_v);
+            const realv pv = h - vn, dv = vn - vo;
+            const realv xn = xo + mu_v * (hr - vn);
             const realv d = h - t;
             store_row(xn, xi, i, cnt);
             store_row(vn, v, i, cnt);

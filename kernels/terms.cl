@@ -44,8 +44,8 @@ __kernel void combine(__global real_t *out, __global const real_t *p, __global c
  * Reduces sum c/l1 |x|, ||x - w'||^2, ||w' - w||^2, ||w'||^2, ||rho'||^2. */
 __kernel void l1_update(__global const real_t *x, __global real_t *w, __global real_t *rho,
                         const real_t l1, __global const real_t *l1w, __global const real_t *lw, const int voxel,
-                        const real_t mu, const int planes, const int ny, const int nx, const int rows,
-                        __global real_t *partials, const int pstride, const int slot0) {
+                        const real_t mu, const real_t alpha, const int planes, const int ny, const int nx,
+                        const int rows, __global real_t *partials, const int pstride, const int slot0) {
     ROW_ITEM(nx, ny, rows);
     realv a0 = 0, a1 = 0, a2 = 0, a3 = 0, a4 = 0;
     for (int y = y0; y < y1; y++)
@@ -56,8 +56,9 @@ __kernel void l1_update(__global const real_t *x, __global real_t *w, __global r
                 const size_t i = slab_index(z, y, x0, ny, nx);
                 const realv xi = load_row(x, i, cnt), wo = load_row(w, i, cnt), ro = load_row(rho, i, cnt);
                 const realv wt = voxel ? pw * load_row(lw, i, cnt) : (realv)pw, c = l1 * wt;
-                const realv wn = fmax(xi + ro / mu - c / mu, (real_t)0);
-                const realv rn = ro + mu * (xi - wn);
+                const realv xr = alpha * xi + (1 - alpha) * wo;   /* over-relaxed x */
+                const realv wn = fmax(xr + ro / mu - c / mu, (real_t)0);
+                const realv rn = ro + mu * (xr - wn);
                 const realv pr = xi - wn, dw = wn - wo;
                 store_row(wn, w, i, cnt);
                 store_row(rn, rho, i, cnt);
@@ -90,12 +91,13 @@ __kernel void tv_update(__global real_t *u, __global real_t *eta, __global const
             for (int xb = xb0; xb < xb1; xb++) {
                 const int x0 = xb * VW, cnt = nx - x0;
                 const size_t i = slab_index(zz, y, x0, ny, nx);
-                const realv xv = load_row(x, i, cnt);
-                realv un = load_row(z, i, cnt);
+                const realv xv = load_row(x, i, cnt), zv = load_row(z, i, cnt);
+                realv un = zv;
                 if (tau > 0)
                     un -= tau * div_step(px, py, pz, pz_prev, has_prev, prev_planes, i, plane, x0, cnt, y, zz,
                                          planes, has_next, ny, nx, aw);
-                const realv en = load_row(eta, i, cnt) + mu * (xv - un);
+                /* eta + mu (xr - u') with z = xr + eta / mu (xr: the over-relaxed x) */
+                const realv en = mu * (zv - un);
                 const realv pu = xv - un, du = un - load_row(u, i, cnt);
                 store_row(un, u, i, cnt);
                 store_row(en, eta, i, cnt);

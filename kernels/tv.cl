@@ -8,14 +8,16 @@
  * Volumes are slab-stored: `*_prev` is the previous slab (its last plane is the z-1 neighbour),
  * `*_next` the next one (its first plane is the z+1 neighbour). */
 
-/* g = div p - z / tau over one slab.  z = x + eta/mu_u = x + tau div p is constant over the dual
- * iterations of one outer iteration: the first (`first`, p still the previous outer iteration's)
- * computes it and stores it in `z`, the later ones read it from there.
+/* g = div p - z / tau over one slab.  z = xr + eta/mu_u = xr + tau div p (xr = alpha x + (1 - alpha) u,
+ * the over-relaxed x) is constant over the dual iterations of one outer iteration: the first (`first`,
+ * p still the previous outer iteration's) computes it and stores it in `z`, the later ones read it from
+ * there (u is read only when alpha != 1).
  * This and the other kernels of this file are row kernels (common.cl), `rows` rows per work-item. */
 __kernel void tv_residual(__global real_t *g,
                           __global const real_t *px, __global const real_t *py, __global const real_t *pz,
                           __global const real_t *pz_prev, const int has_prev, const int prev_planes,
                           const int has_next, __global const real_t *x, __global real_t *z, const int first,
+                          __global const real_t *u, const real_t alpha,
                           const real_t tau, const real_t inv_tau, const real_t aw,
                           const int planes, const int ny, const int nx, const int rows) {
     int xb0, xb1, y0, y1;
@@ -30,8 +32,9 @@ __kernel void tv_residual(__global real_t *g,
                 const realv d = div_step(px, py, pz, pz_prev, has_prev, prev_planes, i, plane, x0, cnt, y, zz,
                                          planes, has_next, ny, nx, aw);
                 realv zv;
-                if (first) {
-                    zv = load_row(x, i, cnt) + tau * d;
+                if (first) {   /* over-relaxed: xr = alpha x + (1 - alpha) u (u: the previous u') */
+                    const realv xv = load_row(x, i, cnt);
+                    zv = (alpha == 1 ? xv : alpha * xv + (1 - alpha) * load_row(u, i, cnt)) + tau * d;
                     store_row(zv, z, i, cnt);
                 } else {
                     zv = load_row(z, i, cnt);

@@ -46,13 +46,14 @@ def test_derived_state_equals_the_twins_explicit_one(rt, dtype, warm):
 
 def test_penalty_change_keeps_w_and_rho(rt):
     """The exact form: one w update at a new penalty mu_w from a state s made at another (mu_s, l1_s)
-    gives the twin's w' = max(x + (rho - l1 c)/mu_w, 0) and rho' = rho + mu_w (x - w') from the
-    explicit w, rho that state stands for (read at the new penalty, s would stand for other ones)."""
+    gives the twin's w' = max(a + (rho - l1 c)/mu_w, 0) and rho' = rho + mu_w (a - w') with the over-relaxed
+    a = alpha x + (1 - alpha) w, from the explicit w, rho that state stands for (read at the new penalty, s
+    would stand for other ones)."""
     rng = np.random.default_rng(4)
     psf, _, y = bead_problem(2)
     nz = psf.shape[0]
     prm = ADMMParams(l1=0.05, tv=0.0, max_iter=1, tol=0, penalty="fixed", mu_w=0.3, l1_plane_power=2.0,
-                     normalize=False)
+                     normalize=False, relaxation=1.7)
     s = ADMMSolver(psf, prm, dtype=np.float64, backend="cl", padded_shape=P, max_slab_planes=2)
     state = rng.standard_normal((nz,) + P)
     s.set_volume("s", state)
@@ -67,8 +68,9 @@ def test_penalty_change_keeps_w_and_rho(rt):
     s.set_volume("g", x)
     s.w_step(0.05, 0.3)
     assert s.l1_split == (0.05, 0.3)
-    w_new = np.maximum(x + (rho - 0.05 * c) / 0.3, 0)
-    rho_new = rho + 0.3 * (x - w_new)
+    a = 1.7 * x - 0.7 * w
+    w_new = np.maximum(a + (rho - 0.05 * c) / 0.3, 0)
+    rho_new = rho + 0.3 * (a - w_new)
     np.testing.assert_allclose(s.get_volume("w"), w_new, rtol=1e-12, atol=1e-14)
     np.testing.assert_allclose(s.get_volume("rho"), rho_new, rtol=1e-12, atol=1e-14)
 

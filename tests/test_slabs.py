@@ -39,8 +39,10 @@ def problem(nz=7, dtype=np.float32):
 
 def close(a, b, dtype):
     """Relative distance of two solves: float rounding in the order of the depth sums, amplified by at
-    most the iteration count (25) times a few: 2e-5 in float32, 1e-12 in float64 (seen: < 1e-6 / 1e-14)."""
-    tol = 2e-5 if np.dtype(dtype) == np.float32 else 1e-12
+    most the iteration count (25) times a few: 6e-5 in float32, 1e-12 in float64 (seen on two devices:
+    2.3e-5 / 4.6e-14 with the default over-relaxation 1.6, which amplifies rounding ~3x; 7e-6 / 1.3e-14
+    without)."""
+    tol = 6e-5 if np.dtype(dtype) == np.float32 else 1e-12
     err = np.linalg.norm(a - b) / np.linalg.norm(b)
     print(f"relative distance {err:.2e}")
     assert err < tol, err
@@ -68,7 +70,7 @@ def test_streamed_slabs_equal_the_whole_solve(rt, dtype, overlap):
     mus = list(zip(streamed.history["mu_u"], streamed.history["mu_w"]))
     own = 1 + sum(a != b for a, b in zip(mus[:-1], mus[1:]))
     assert 1 < own < 25   # both paths ran
-    model = sum(streamed_bytes_per_iteration(7, (64, 80), dtype, "cl", 2, rhs_ready=r) * n
+    model = sum(streamed_bytes_per_iteration(7, (64, 80), dtype, "cl", 2, rhs_ready=r, relaxed=True) * n
                 for r, n in ((True, 25 - own), (False, own))) + memory_estimate(7, (64, 80), dtype, "cl")["psf_spectra"]
     halos = (25 * (3 + 3 + 2 * (3 + 3 + 4)) + 3 * own) * 64 * 80 * np.dtype(dtype).itemsize
     assert moved == model + halos, (moved, model, halos)
@@ -235,7 +237,7 @@ def test_cli_streams_under_a_memory_cap_and_plans_it(rt, tmp_path, capsys):
     text = capsys.readouterr().out
     suffix = " (double-buffered)" if dbl else ""
     assert f"planes 0..6, streamed in slabs of 3 planes{suffix}" in text
-    moved = streamed_bytes_per_iteration(7, (64, 80), np.float32, "cl", 2)
+    moved = streamed_bytes_per_iteration(7, (64, 80), np.float32, "cl", 2, relaxed=True)
     assert f"moved between host and devices per iteration: {moved / 2**30:.2f} GiB" in text
     assert "s per iteration" in text and "host <-> device" in text
     assert main(base + ["-o", str(tmp_path / "a.ome.tif"), "--max-memory", cap]) == 0

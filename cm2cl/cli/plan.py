@@ -100,7 +100,8 @@ def dry_run(args, params: ADMMParams) -> int:
                f"{lp.host_bytes / 2**30:.2f} GiB of host memory" if lp.streamed else
                f"resident, lean (x spectra in slabs of {lp.slab_planes} planes)" if lp.lean else "resident")
         if lp.streamed:
-            moved += streamed_bytes_per_iteration(lp.z1 - lp.z0, P, dt, backend, params.tv_iters)
+            moved += streamed_bytes_per_iteration(lp.z1 - lp.z0, P, dt, backend, params.tv_iters,
+                                                  relaxed=params.relaxation != 1)
         print(f"  device {lp.rt.caps.name} (#{lp.rt.caps.index}): planes {lp.z0}..{lp.z1 - 1}, {how}; "
               f"{lp.device_bytes / 2**30:.2f} GiB on the device")
     host = _decoded_bytes(ms, ps) + sum(lp.host_bytes for lp in lay)

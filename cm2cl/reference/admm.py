@@ -81,10 +81,10 @@ def admm(y, psf, params=None, padded_shape=None, dtype=np.float64, workers=None,
         hx = irfft(HX).astype(dt)
         dx2 = sq(x_new.astype(np.float64) - x)
         x = x_new
-        stats, objective = data.update(hx, mu["v"])
+        stats, objective = data.update(hx, mu["v"], p.relaxation)
         splits = {"v": SplitStats(**stats)}
         for t in regs:
-            st, obj = t.update(x, mu[t.split], weight[t.split])
+            st, obj = t.update(x, mu[t.split], weight[t.split], p.relaxation)
             splits[t.split] = SplitStats(**st)
             objective.update(obj)
         if ctl.update(it, dx2=dx2, x2=sq(x), splits=splits, objective=objective, changes=data.changes()):

@@ -15,7 +15,8 @@ def sq(a) -> float:
 
 
 class LeastSquares:
-    """1/2 ||C H x - y||^2_W on v = Hx: v' = (C^T W y + mu Hx + xi) / (C^T W C + mu), xi += mu (Hx - v')."""
+    """1/2 ||C H x - y||^2_W on v = Hx: v' = (C^T W y + mu a + xi) / (C^T W C + mu), xi += mu (a - v'), with
+    a = alpha Hx + (1 - alpha) v the over-relaxed Hx (alpha = 1: plain ADMM)."""
 
     split, kind = "v", "data"
 
@@ -29,9 +30,10 @@ class LeastSquares:
     def rhs(self, mu):
         return mu * self.v - self.xi
 
-    def update(self, hx, mu):
-        v_new = ((self.mask * self.cty + mu * hx + self.xi) / (self.mask + mu)).astype(self.dt)
-        self.xi += mu * (hx - v_new)
+    def update(self, hx, mu, alpha=1.0):
+        a = alpha * hx + (1.0 - alpha) * self.v
+        v_new = ((self.mask * self.cty + mu * a + self.xi) / (self.mask + mu)).astype(self.dt)
+        self.xi += mu * (a - v_new)
         stats = dict(r2=sq(hx - v_new), d2=sq(v_new - self.v), ax2=sq(hx), z2=sq(v_new), dual2=sq(self.xi))
         self.v = v_new
         return stats, {"data": 0.5 * float(np.sum(self.wts * (crop(hx.astype(np.float64), self.M) - self.ys) ** 2))}
@@ -42,7 +44,8 @@ class LeastSquares:
 
 
 class L1:
-    """l1 sum_z c_z |x_z| + i(x >= 0) on w = x: w' = max(x + rho/mu - l1 c/mu, 0), rho += mu (x - w')."""
+    """l1 sum_z c_z |x_z| + i(x >= 0) on w = x: w' = max(a + rho/mu - l1 c/mu, 0), rho += mu (a - w'), with
+    a = alpha x + (1 - alpha) w the over-relaxed x."""
 
     split, kind = "w", "identity"
 
@@ -52,16 +55,18 @@ class L1:
     def rhs(self, mu):
         return mu * self.w - self.rho
 
-    def update(self, x, mu, weight):
-        w_new = np.maximum(x + self.rho / mu - weight * self.lw / mu, 0).astype(x.dtype)
-        self.rho += mu * (x - w_new)
+    def update(self, x, mu, weight, alpha=1.0):
+        a = alpha * x + (1.0 - alpha) * self.w
+        w_new = np.maximum(a + self.rho / mu - weight * self.lw / mu, 0).astype(x.dtype)
+        self.rho += mu * (a - w_new)
         stats = dict(r2=sq(x - w_new), d2=sq(w_new - self.w), ax2=sq(x), z2=sq(w_new), dual2=sq(self.rho))
         self.w = w_new
         return stats, {"l1": float(np.sum(self.lw * np.abs(x)))}
 
 
 class TV:
-    """tv TV(x) on u = x: u' = prox_{tv/mu TV}(x + eta/mu) by warm-started dual iterations, eta += mu (x - u')."""
+    """tv TV(x) on u = x: u' = prox_{tv/mu TV}(a + eta/mu) by warm-started dual iterations, eta += mu (a - u'),
+    with a = alpha x + (1 - alpha) u the over-relaxed x."""
 
     split, kind = "u", "identity"
 
@@ -73,14 +78,15 @@ class TV:
     def rhs(self, mu):
         return mu * self.u - self.eta
 
-    def update(self, x, mu, weight):
-        z = x + self.eta / mu
+    def update(self, x, mu, weight, alpha=1.0):
+        a = alpha * x + (1.0 - alpha) * self.u if weight > 0 else x   # off: an inactive split, u = x
+        z = a + self.eta / mu
         if weight > 0:
             u_new, self.p = tv_prox(z, weight / mu, self.iters, self.p, self.aw, self.iso)
         else:
             u_new = z
         u_new = u_new.astype(x.dtype)
-        self.eta += mu * (x - u_new)
+        self.eta += mu * (a - u_new)
         stats = dict(r2=sq(x - u_new), d2=sq(u_new - self.u), ax2=sq(x), z2=sq(u_new), dual2=sq(self.eta))
         self.u = u_new
         return stats, {"tv": tv_value(x, self.aw, self.iso)}
@@ -118,7 +124,7 @@ def support_extent(psf, fraction=1 - 1e-6):
 class LeastSquaresBackground(LeastSquares):
     """1/2 ||W^(1/2) (C H x + b - y)||^2 with b = B c, c >= 0, on v = Hx: the data step minimises jointly over
     (v, c); c by non-negative least squares on the whole design matrix (the solver uses its normal
-    equations), v = (W (y - b) + mu a) / (W + mu) with a = Hx + xi / mu."""
+    equations), v = (W (y - b) + mu a) / (W + mu) with a = alpha Hx + (1 - alpha) v + xi / mu (over-relaxed)."""
 
     def __init__(self, cty, mask, ys, wts, M, dt, spacing):
         super().__init__(cty, mask, ys, wts, M, dt)
@@ -148,10 +154,11 @@ class LeastSquaresBackground(LeastSquares):
     def changes(self):
         return {"b": self.change}
 
-    def update(self, hx, mu):
-        self._fit((hx + self.xi / mu)[self.sensor], mu)
-        v_new = ((self.mask * self.target + mu * hx + self.xi) / (self.mask + mu)).astype(self.dt)
-        self.xi += mu * (hx - v_new)
+    def update(self, hx, mu, alpha=1.0):
+        hr = alpha * hx + (1.0 - alpha) * self.v
+        self._fit((hr + self.xi / mu)[self.sensor], mu)
+        v_new = ((self.mask * self.target + mu * hr + self.xi) / (self.mask + mu)).astype(self.dt)
+        self.xi += mu * (hr - v_new)
         stats = dict(r2=sq(hx - v_new), d2=sq(v_new - self.v), ax2=sq(hx), z2=sq(v_new), dual2=sq(self.xi))
         self.v = v_new
         fit = crop(hx.astype(np.float64), self.M) + self.b - self.ys
@@ -167,9 +174,9 @@ class ReweightedL1(L1):
         self.plane, self.rounds, self.eps_fraction, self.done = plane_weights, rounds, eps_fraction, 0
         self.voxel = np.ones_like(x)
 
-    def update(self, x, mu, weight):
+    def update(self, x, mu, weight, alpha=1.0):
         self.lw = self.plane * self.voxel
-        return super().update(x, mu, weight)
+        return super().update(x, mu, weight, alpha)
 
     def next_round(self, x) -> bool:
         xp = np.maximum(x, 0)

@@ -93,29 +93,33 @@ def check_fits(rt, nz, padded_shape, dtype, backend, max_memory=None):
     return est
 
 
-def streamed_bytes_per_iteration(planes, padded_shape, dtype, backend, tv_iters, rhs_ready=True) -> int:
+def streamed_bytes_per_iteration(planes, padded_shape, dtype, backend, tv_iters, rhs_ready=True,
+                                 relaxed=False) -> int:
     """Host <-> device bytes one iteration moves for ``planes`` streamed planes (halo planes aside):
     each step copies in what it reads and out what it writes (cm2cl.solver.admm): x step V + S in
     (the rhs that the previous TV finish made; ``rhs_ready=False``, the first iteration and after the
     penalties change: 5V + S to make it), S out, then 2S in, V out; w split 3V in, V out; the first TV
     iteration 4V in, 3V + S out, each further one 3V + S in, 3V out; TV finish 6V + S in, 2V out (V: a
-    real volume of the planes, S: their spectra; S also carries the TV prox's argument)."""
+    real volume of the planes, S: their spectra; S also carries the TV prox's argument). ``relaxed``
+    (over-relaxation, alpha != 1): the first TV iteration also reads u, V more."""
     est = memory_estimate(planes, padded_shape, dtype, backend)
     V, S = est["real_volume"], est["psf_spectra"]
-    return int(((1 if rhs_ready else 5) + 1 + 3 + 1 + 6 + 2 + 6 * tv_iters + 1) * V + (4 + tv_iters + 1) * S)
+    return int(((1 if rhs_ready else 5) + 1 + 3 + 1 + 6 + 2 + 6 * tv_iters + 1 + (1 if relaxed else 0)) * V
+               + (4 + tv_iters + 1) * S)
 
 
-def iteration_bytes(nz, padded_shape, dtype, backend, tv_iters, lean=False) -> int:
+def iteration_bytes(nz, padded_shape, dtype, backend, tv_iters, lean=False, relaxed=False) -> int:
     """Device memory traffic of one iteration's kernels, each FFT counted as one read and one write:
     FFT V+S; x-step accumulate 2S (reads only) and solve 3S; IFFT S+V; w split 4V; TV: residual 5V (6V
     the first time) and dual step 7V per inner iteration; TV finish 9V, which also makes the next x
     step's rhs (V: a real volume, S: a spectrum volume; rhs_volume's 6V, on the first iteration and
     after the penalties change, are not counted). With cm2cl's FFT ("cl") the solve runs inside the
     IFFT's column pass, which then reads the PSF spectra too: 2S less (ClPlan.inverse_xstep). ``lean``:
-    the x step transforms its rhs twice, V+S more."""
+    the x step transforms its rhs twice, V+S more. ``relaxed`` (over-relaxation): the first TV residual
+    also reads u, V more."""
     est = memory_estimate(nz, padded_shape, dtype, backend)
     spectra = (5 if backend == "cl" else 7) + (1 if lean else 0)
-    real = 1 + 1 + 4 + 1 + 9 + 12 * tv_iters + (1 if lean else 0)
+    real = 1 + 1 + 4 + 1 + 9 + 12 * tv_iters + (1 if lean else 0) + (1 if relaxed else 0)
     return int(real * est["real_volume"] + spectra * est["psf_spectra"])
 
 

@@ -4,7 +4,8 @@ jointly with the volume so that haze is not reconstructed as volume.
 
 On the split v = Hx, the data step minimises over (v, c >= 0)
 
-    1/2 ||W^(1/2) (C v + B c - y)||^2 + mu/2 ||v - a||^2,    a = Hx + xi / mu:
+    1/2 ||W^(1/2) (C v + B c - y)||^2 + mu/2 ||v - a||^2,    a = alpha Hx + (1 - alpha) v_prev + xi / mu
+(alpha: the over-relaxation, 1 for plain ADMM):
 
 for a given b, v = (W (y - b) + mu a) / (W + mu) on the sensor (the least-squares step with y - b), and
 putting it back leaves c = argmin_{c >= 0} ||Q^(1/2) (B c - (y - a))||^2 with Q = W mu / (W + mu), an exact
@@ -127,15 +128,18 @@ class LeastSquaresBackground(LeastSquares):
         mu = ctl.mu["v"]
         part, (ny, nx) = s.parts[0], s.P
         pl = part.planes
-        s.row_grid(part, "combine", out=pl["r"], p=pl["hx"], q=pl["xi"], a=1.0, b=1.0 / mu, add=False, planes=1,
+        alpha = s.p.relaxation   # a = alpha Hx + (1 - alpha) v + xi / mu: the over-relaxed Hx
+        s.row_grid(part, "combine", out=pl["r"], p=pl["hx"], q=pl["v"], a=alpha, b=1.0 - alpha, add=False, planes=1,
                    ny=ny, nx=nx)
-        a = pl["r"].get()[0][s.crop].astype(np.float64)   # Hx + xi / mu on the sensor
+        s.row_grid(part, "combine", out=pl["r"], p=pl["xi"], q=pl["xi"], a=1.0 / mu, b=0.0, add=True, planes=1,
+                   ny=ny, nx=nx)
+        a = pl["r"].get()[0][s.crop].astype(np.float64)
         b = self.fit.fit(s.y_n - a, self._weights(s, mu), mu)
         self._change = (float(np.sum((b - self._b) ** 2)), float(np.sum(b * b)))
         self._b = b
         self._set_target(s, b)
         s.reduce_rows(part, "update_v", "v", v=pl["v"], xi=pl["xi"], hx=pl["hx"], cty=pl["ytb"], cw=pl["cw"],
-                      mu_v=mu, py=ny, px=nx)
+                      mu_v=mu, alpha=alpha, py=ny, px=nx)
 
     def changes(self) -> dict:
         return {"b": self._change}

@@ -35,10 +35,11 @@ class LeastSquares(Term):
         part.kernels("rhs_plane", (ny * nx,), r=pl["r"], v=pl["v"], xi=pl["xi"], mu_v=mu_v, n=ny * nx)
 
     def update(self, s, ctl) -> None:
-        """v' = (C^T W y + mu_v Hx + xi) / (C^T W C + mu_v), xi += mu_v (Hx - v') on part 0's plane."""
+        """v' = (C^T W y + mu_v a + xi) / (C^T W C + mu_v), xi += mu_v (a - v') on part 0's plane, with
+        a = alpha Hx + (1 - alpha) v (over-relaxation)."""
         pl, (ny, nx) = s.parts[0].planes, s.P
         s.reduce_rows(s.parts[0], "update_v", "v", v=pl["v"], xi=pl["xi"], hx=pl["hx"], cty=pl["cty"],
-                      cw=pl["cw"], mu_v=ctl.mu["v"], py=ny, px=nx)
+                      cw=pl["cw"], mu_v=ctl.mu["v"], alpha=s.p.relaxation, py=ny, px=nx)
 
     def stats(self, v: dict) -> SplitStats:
         return SplitStats(v["rv2"], v["sv2"], v["hx2"], v["v2"], v["xi2"])

@@ -3,7 +3,8 @@
 Per voxel the iteration keeps x, g (the previous x, then scratch), s, u and the TV dual p = (px, py,
 pz); w, rho and eta are derived exactly wherever a kernel needs them (kernels/splits.cl, tv.cl):
 
-* w split: s = x + rho_old / mu_w, so that w = max(s - c / mu_w, 0) and rho = min(mu_w s, c) with
+* w split: s = xr + rho_old / mu_w (xr = alpha x + (1 - alpha) w_old, over-relaxed), so that
+  w = max(s - c / mu_w, 0) and rho = min(mu_w s, c) with
   c = l1 l1w[z]; :attr:`DefaultSet.l1_split` holds the (l1, mu_w) s was made with, so w and rho are the
   same before and after the penalty policy changes mu_w.
 * u split: eta = tv div p (p as the last dual iterations left it, :attr:`DefaultSet.tv_split` the tv);
@@ -109,7 +110,7 @@ class DefaultSet:
             s.reduce_rows(part, "update_w", "update_w", x=a["x"], x_next=xn if has_next else a["x"],
                           has_next=has_next, x_old=a["g"], s=a["s"], l1=l1, l1w=self.weights.of(i, j0, j1),
                           mu_w=mu_w, l1_s=l1_s, mu_s=mu_s, aw=p.tv_axial_weight, iso=p.tv_isotropic,
-                          planes=n, ny=ny, nx=nx)
+                          alpha=p.relaxation, planes=n, ny=ny, nx=nx)
         self.l1_split = (float(l1), float(mu_w))
 
     def tv_prox(self, s, tau, zn, rn) -> None:
@@ -119,13 +120,15 @@ class DefaultSet:
         spectra, whose first plane the previous slab's dual step needs next)."""
         p, (ny, nx) = s.p, s.P
         grid = ("px", "py", "pz")
+        relaxed = p.relaxation != 1.0   # the first iteration's z = alpha x + (1 - alpha) u + eta / mu_u
         for k in range(p.tv_iters):
             first = k == 0
-            reads = grid + (("x",) if first else (zn,))
+            reads = grid + ((("x", "u") if relaxed else ("x",)) if first else (zn,))
             writes = grid + ((zn,) if first else ())
             for i, part, j, n, a in s.walk.slabs(reads, writes, edges=(rn,), reverse=True):
                 s.row_grid(part, "tv_residual", g=a[rn], px=a["px"], py=a["py"], pz=a["pz"],
-                           x=a["x" if first else zn], z=a[zn], first=first, tau=tau, inv_tau=1.0 / tau,
+                           x=a["x" if first else zn], z=a[zn], first=first, u=a["u"] if first and relaxed else a[zn],
+                           alpha=p.relaxation if first else 1.0, tau=tau, inv_tau=1.0 / tau,
                            aw=p.tv_axial_weight, planes=n, ny=ny, nx=nx, **s.walk.neighbours(i, j, j, a, "pz"))
                 gn, hn = s.walk.next(i, j, rn)
                 s.row_grid(part, "tv_dual_step", px=a["px"], py=a["py"], pz=a["pz"], g=a[rn],

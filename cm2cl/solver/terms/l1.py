@@ -54,7 +54,7 @@ class L1(IdentityTerm):
         for i, part, j0, j1, n, a in s.walk.runs(("x",) + self.volumes, ("w", "rho")):
             s.reduce_rows(part, "l1_update", "w", x=a["x"], w=a["w"], rho=a["rho"], l1=ctl.l1,
                           l1w=self.plane_w.of(i, j0, j1), lw=a.get("lw", a["w"]), voxel="lw" in a, mu=ctl.mu["w"],
-                          planes=n, ny=ny, nx=nx)
+                          alpha=s.p.relaxation, planes=n, ny=ny, nx=nx)
 
     def weights(self, ctl) -> dict:
         return {"l1": ctl.l1}

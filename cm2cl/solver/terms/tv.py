@@ -24,8 +24,12 @@ class TV(IdentityTerm):
     def update(self, s, ctl) -> None:
         p, (ny, nx), mu = s.p, s.P, ctl.mu["u"]
         tau = ctl.tv / mu
-        for i, part, j0, j1, n, a in s.walk.runs(("x", "eta"), ("z",)):
-            s.row_grid(part, "combine", out=a["z"], p=a["x"], q=a["eta"], a=1.0, b=1.0 / mu, add=False, planes=n,
+        # z = alpha x + (1 - alpha) u + eta / mu: the prox's argument, over-relaxed (TV off: u = x, inactive)
+        alpha = p.relaxation if tau > 0 else 1.0
+        for i, part, j0, j1, n, a in s.walk.runs(("x", "u", "eta"), ("z",)):
+            s.row_grid(part, "combine", out=a["z"], p=a["x"], q=a["u"], a=alpha, b=1.0 - alpha, add=False, planes=n,
+                       ny=ny, nx=nx)
+            s.row_grid(part, "combine", out=a["z"], p=a["eta"], q=a["eta"], a=1.0 / mu, b=0.0, add=True, planes=n,
                        ny=ny, nx=nx)
         grid = ("px", "py", "pz")
         for _ in range(p.tv_iters if tau > 0 else 0):
@@ -33,7 +37,7 @@ class TV(IdentityTerm):
             # step the next slab's residual (already computed), as all residuals and then all steps
             for i, part, j, n, a in s.walk.slabs(grid + ("z",), grid, edges=("g",), reverse=True):
                 s.row_grid(part, "tv_residual", g=a["g"], px=a["px"], py=a["py"], pz=a["pz"], x=a["z"], z=a["z"],
-                           first=0, tau=tau, inv_tau=1.0 / tau, aw=p.tv_axial_weight, planes=n, ny=ny, nx=nx,
+                           first=0, u=a["z"], alpha=1.0, tau=tau, inv_tau=1.0 / tau, aw=p.tv_axial_weight, planes=n, ny=ny, nx=nx,
                            **s.walk.neighbours(i, j, j, a, "pz"))
                 gn, hn = s.walk.next(i, j, "g")
                 s.row_grid(part, "tv_dual_step", px=a["px"], py=a["py"], pz=a["pz"], g=a["g"],
