@@ -6,8 +6,8 @@ Fourier transform, normalised to 1 at zero frequency. Its *support* is where it 
 (a fraction of the DC value, or the noise floor when that is higher: the median of the MTF over the
 outermost tenth of the frequencies, where a band-limited stack has only noise and aliasing):
 
-- the lateral cutoff f_c: the largest lateral frequency along f_x (f_y = f_z = 0) up to which the MTF stays
-  in its support; the lateral bandwidth B_x = 2 f_c;
+- the lateral cutoff f_c: the largest lateral frequency along f_x (f_y = 0) up to which the support holds
+  some f_z at every f_x; the lateral bandwidth B_x = 2 f_c;
 - the axial bandwidth at a lateral frequency f_x: the extent max f_z - min f_z of the support on the f_x-f_z
   section (f_y = 0) at that f_x, which for the CM2 spans the tilted bands of the side lenslets
   (f_z = +-tan(alpha_MLA) f_x) as well as the central bowtie; B_z is its value at f_c;
@@ -56,11 +56,13 @@ def support_floor(m: dict, floor: float = DEFAULT_FLOOR) -> dict:
 
 
 def lateral_cutoff(m: dict, level: float) -> float:
-    """The largest f_x >= 0 (cycles / um) up to which the MTF on the f_x axis (f_y = f_z = 0) stays >= level,
-    interpolated linearly between samples; the Nyquist frequency if it never falls below."""
+    """The largest f_x >= 0 (cycles / um) up to which the support on the f_x-f_z section (f_y = 0) holds
+    some f_z at every f_x (its column maximum >= level), interpolated linearly between samples; the Nyquist
+    frequency if it never falls below. The column maximum, not the f_z = 0 line: an array PSF's foci
+    interfere there (the array factor's zeros), while their tilted bands carry the frequency at f_z != 0."""
     mt, fx = m["mtf"], m["fx"]
     cz, cy, cx = (n // 2 for n in mt.shape)
-    line = mt[cz, cy, cx:]
+    line = mt[:, cy, cx:].max(axis=0)
     f = fx[cx:]
     below = np.flatnonzero(line < level)
     if below.size == 0:
