@@ -184,3 +184,150 @@ def test_cli_on_random_files_reconstructs_or_refuses_with_one_line(rt, tmp_path_
         nz = psf.shape[0] if psf.ndim == 3 else 1
         assert vol.shape == (nz, y.shape[0] // b, y.shape[1] // b) and np.all(np.isfinite(vol))
         assert vol.dtype == (np.float64 if "float64" in opts else np.float32)
+
+
+# ---- series jobs against one frame (issue 27) ----------------------------------------------------------------
+
+SERIES_OPTIONS = [("--l1", ["0.001", "-1", "nan"]), ("--tv", ["0", "1e-3"]), ("--max-iter", ["3", "0"]),
+                  ("--offset", ["none", "auto", "3", "q"]), ("--bin", ["1", "2", "0"]), ("--tol", ["0", "-1"]),
+                  ("--background", ["model", "none", "opening:3px", "garbage"]), ("--mask", ["saturated", "bogus"]),
+                  ("--saturation", ["50"]), ("--max-memory", ["0.5", "1G", "x"]), ("--stream", ["auto", "never"]),
+                  ("--host-memory", ["2G"]), ("--dry-run", []), ("--padded", []), ("--prior", ["points", "nope"]),
+                  ("--relaxation", ["1", "1.6", "2.5"]), ("--penalty", ["fixed", "balance"])]
+
+
+@st.composite
+def series_argvs(draw):
+    opts = []
+    for name, values in SERIES_OPTIONS:
+        if draw(st.integers(0, 3)) == 0:      # a few options per example
+            opts += [name] + ([draw(st.sampled_from(values))] if values else [])
+    return opts + ["--max-iter", "3"] if "--max-iter" not in opts else opts
+
+
+@pytest.fixture(scope="module")
+def series_files(tmp_path_factory):
+    d = tmp_path_factory.mktemp("series")
+    rng = np.random.default_rng(2)
+    frames = (rng.random((3, 10, 12)) * 100).astype(np.uint16)
+    tifffile.imwrite(d / "psf.tif", (rng.random((2, 10, 12)) * 100).astype(np.uint16), photometric="minisblack")
+    tifffile.imwrite(d / "frames.tif", frames, photometric="minisblack")
+    tifffile.imwrite(d / "frame0.tif", frames[0])
+    return d
+
+
+def _run(argv, capsys):
+    try:
+        with time_limit():
+            code = main(argv)
+    except SystemExit as exc:
+        code = exc.code
+    return code, capsys.readouterr().err.strip().splitlines()
+
+
+@SETTINGS
+@given(series_argvs())
+def test_series_options_work_as_for_one_frame_or_are_refused_before_any_work(rt, series_files, capsys, opts):
+    """A series (-o OUT.ome.zarr) given random options: it refuses every option one frame refuses, and any
+    it does not apply, with one line before any work (no store, no bookkeeping left); what it accepts gives
+    frame 0 the volume a one-frame run gives (the same solve)."""
+    d = series_files
+    for p in d.iterdir():
+        if p.name not in ("psf.tif", "frames.tif", "frame0.tif"):
+            if p.is_dir():
+                import shutil
+                shutil.rmtree(p)
+            else:
+                p.unlink()
+    one, one_err = _run(["reconstruct", str(d / "frame0.tif"), "--psf", str(d / "psf.tif"), "-o", str(d / "v.ome.tif"),
+                         "--quiet", *opts], capsys)
+    many, many_err = _run(["reconstruct", str(d / "frames.tif"), "--psf", str(d / "psf.tif"), "-o",
+                           str(d / "s.ome.zarr"), "--quiet", *opts], capsys)
+    assert many in (0, 2), (many, many_err)
+    if one != 0:
+        assert many == 2, (opts, one_err)     # nothing one frame refuses is taken by a series
+    if many == 2:
+        errors = [e for e in many_err if not e.startswith("cm2cl: note:")]
+        assert len(errors) == 1 and "error:" in errors[0], many_err
+        left = sorted(p.name for p in d.iterdir() if p.name.startswith(("s.", ".s.")))
+        assert left == [], left
+        event("series refused")
+        return
+    event("series reconstructed")
+    assert one == 0 and "--dry-run" not in opts
+    from cm2cl.jobs.store import FrameStore
+
+    store = FrameStore.open_readonly(d / "s.ome.zarr")
+    try:
+        assert store.missing() == [] and store.n_frames == 3
+        vol, _ = io.read_tiff(d / "v.ome.tif")
+        np.testing.assert_allclose(store.read(0), vol, rtol=1e-5, atol=1e-6 * float(np.abs(vol).max()))
+    finally:
+        store.close()
+
+
+# ---- OME metadata with random values (issue 27) --------------------------------------------------------------
+
+#: valid values and units, and ones that are no numbers, not finite, not positive, out of range, unknown
+GOOD_VALUES, BAD_VALUES = ["5", "0.5", "2"], ["0", "-1", "nan", "inf", "1e400", "abc", "", " 2 ", "1,5", "0x10", "1e-300"]
+GOOD_UNITS, BAD_UNITS = [None, "&#181;m", "nm", "mm"], ["cm", "pixel", "bogus", ""]
+
+
+@st.composite
+def ome_files(draw):
+    """A 2-plane PSF stack whose OME-XML carries random PhysicalSize*, units, Plane TheZ and PositionZ."""
+    def attrs(names):
+        out = []
+        for n in names:
+            # mostly present, mostly valid (hypothesis leans to 0: it means present and valid), so that some files
+            # read with a scale
+            if draw(st.integers(0, 3)) < 3:
+                out.append(f'{n}="{draw(st.sampled_from(BAD_VALUES if draw(st.integers(0, 5)) == 5 else GOOD_VALUES))}"')
+                unit = draw(st.sampled_from(BAD_UNITS if draw(st.integers(0, 5)) == 5 else GOOD_UNITS))
+                if unit is not None:
+                    out.append(f'{n}Unit="{unit}"')
+        return " ".join(out)
+
+    planes = "".join(f'<Plane TheZ="{draw(st.one_of(st.just(str(z)), st.sampled_from(["x", "-1", "1.5", "7"])))}" '
+                     'TheC="0" TheT="0" '
+                     f'{attrs(["PositionZ"])}/>' for z in range(2))
+    xml = ('<?xml version="1.0" encoding="UTF-8"?><OME xmlns="http://www.openmicroscopy.org/Schemas/OME/2016-06">'
+           '<Image ID="Image:0"><Pixels ID="Pixels:0" DimensionOrder="XYZCT" Type="uint16" SizeX="12" SizeY="10" '
+           f'SizeZ="2" SizeC="1" SizeT="1" {attrs(["PhysicalSizeX", "PhysicalSizeY", "PhysicalSizeZ"])}>'
+           '<Channel ID="Channel:0:0" SamplesPerPixel="1"/><TiffData/>' + planes + '</Pixels></Image></OME>')
+    return xml
+
+
+@settings(SETTINGS, max_examples=150)
+@given(ome_files())
+def test_random_ome_metadata_reads_as_a_scale_or_refuses_with_one_line(rt, series_files, tmp_path_factory, capsys,
+                                                                       xml):
+    """Whatever numbers and units the OME-XML carries, reading gives finite positive voxel sizes and finite
+    depths (or none), or one line naming the file; a reconstruction with it as the PSF writes its output or
+    refuses with one line and leaves nothing."""
+    d = tmp_path_factory.mktemp("ome")
+    data = (np.random.default_rng(3).random((2, 10, 12)) * 100).astype(np.uint16)
+    tifffile.imwrite(d / "psf.ome.tif", data, description=xml, metadata=None, photometric="minisblack")
+    try:
+        _, meta = io.read_tiff(d / "psf.ome.tif")
+    except CM2Error as exc:
+        _one_line_refusal(str(exc))
+        assert "psf.ome.tif" in str(exc)
+        event("read refused")
+    else:
+        vs = meta.get("voxel_size_um")
+        assert vs is None or all(np.isfinite(v) and v > 0 for v in vs), vs
+        dep = meta.get("depths_um")
+        assert dep is None or all(np.isfinite(v) for v in dep), dep
+        event("read with a scale" if vs else "read without a scale")
+    out = d / "v.ome.tif"
+    code, err = _run(["reconstruct", str(series_files / "frame0.tif"), "--psf", str(d / "psf.ome.tif"), "-o", str(out),
+                      "--quiet", "--max-iter", "2"], capsys)
+    assert code in (0, 2), (code, err)
+    if code == 2:
+        errors = [e for e in err if not e.startswith("cm2cl: note:")]
+        assert len(errors) == 1 and "error:" in errors[0], err
+        assert sorted(p.name for p in d.iterdir()) == ["psf.ome.tif"]
+    else:
+        vol, vmeta = io.read_tiff(out)
+        assert vol.shape == (2, 10, 12) and np.all(np.isfinite(vol))

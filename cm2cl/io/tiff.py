@@ -188,7 +188,12 @@ def _ome_geometry(xml_text: str, ndim: int):
         if v is None:
             return None
         scale = _UM_PER.get(pixels.get(attr + "Unit", "µm"))
-        return _num(v, attr) * scale if scale else None
+        if not scale:
+            return None
+        um = _num(v, attr) * scale
+        if not um > 0:
+            raise _BadOME(f"{attr} is {v!r}, not a positive length")
+        return um
 
     depths = None
     planes = pixels.findall(q("Plane"), ns)
