@@ -175,3 +175,27 @@ def test_mip_png_labels_pixels_as_pixels_and_um_only_with_a_scale(tmp_path, monk
     assert xz.get_images()[0].get_extent()[:2] == [0.0, 150.0]
     with pytest.raises(InputError, match="depths_um"):
         an.mip_png(vol, tmp_path / "c.png", depths_um=[0, 1, 2, 3])
+
+
+def test_mip_png_scale_bar_reads_back_in_um(tmp_path, monkeypatch):
+    """With a voxel size the figure carries a scale bar of a round length near a fifth of the field, drawn on
+    the XZ panel's x scale, and the PNG records the axes' units and the bar (text chunks other programs
+    read); without one, neither a bar nor um."""
+    from matplotlib.figure import Figure
+    from PIL import Image
+
+    vol = np.zeros((4, 20, 30))
+    vol[1, 5, 7] = 1.0
+    a = an.mip_png(vol, tmp_path / "a.png")
+    b = an.mip_png(vol, tmp_path / "b.png", voxel_size_um=(50, 44, 44))      # 1320 um wide: a 200-um bar
+    ta, tb = Image.open(a).text, Image.open(b).text
+    assert ta["cm2cl:axes"] == "x (px), y (px), z (plane)" and "cm2cl:scale_bar_um" not in ta
+    assert tb["cm2cl:axes"] == "x (um), y (um), z (um)" and float(tb["cm2cl:scale_bar_um"]) == 200.0
+    assert [an.scale_bar_um(w) for w in (1320, 999, 5000, 7.3)] == [200.0, 100.0, 1000.0, 1.0]
+    figs = []
+    monkeypatch.setattr(Figure, "savefig", lambda self, *a, **k: figs.append(self))
+    an.mip_png(vol, tmp_path / "c.png", voxel_size_um=(50, 44, 44))
+    xz = [ax for ax in figs[0].axes if ax.get_xlabel() == "x (um)"][0]
+    (bar,) = [ln for ln in xz.get_lines()]
+    assert np.ptp(bar.get_xdata()) == pytest.approx(200.0) and max(bar.get_xdata()) == pytest.approx(1320.0)
+    assert any(t.get_text() == "200 um" for t in xz.texts)

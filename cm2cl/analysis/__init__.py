@@ -3,7 +3,7 @@
 figures (:mod:`.figures`)."""
 
 from .emitters import find_emitters, match_emitters, score_beads  # noqa: F401
-from .figures import content_region, mip_png  # noqa: F401
+from .figures import content_region, mip_png, scale_bar_um  # noqa: F401
 from .pixels import check_pixels, hot_pixels, mask_weights, saturated_pixels  # noqa: F401
 from .metrics import (axial_pcc, fwhm, local_sbr, pcc, register_shift, signal_mask,  # noqa: F401
                       width_at_level)

@@ -8,7 +8,7 @@ import numpy as np
 
 from ..errors import InputError
 
-__all__ = ["content_region", "mip_png"]
+__all__ = ["content_region", "mip_png", "scale_bar_um"]
 
 
 def content_region(volume, margin: int = 10, rel: float = 0.05) -> tuple:
@@ -29,8 +29,10 @@ def mip_png(volume, path, voxel_size_um=None, depths_um=None, title: str | None 
     """Save orthogonal maximum-intensity projections (XY, XZ, YZ) of a (nz, ny, nx) volume as a
     PNG with depth colour-coding (hue = depth of the maximum, brightness = its value ** gamma).
     ``region`` = (row slice, col slice) shows only part of the field (see :func:`content_region`);
-    axes are in um from the volume's first pixel when ``voxel_size_um`` (dz, dy, dx) is given, else in
-    pixels and planes (a volume without a physical scale is never labelled in um).
+    axes are in um from the volume's first pixel when ``voxel_size_um`` (dz, dy, dx) is given, with a scale
+    bar under the XZ panel (:func:`scale_bar_um`), else in pixels and planes (a volume without a physical scale
+    is never labelled in um, nor given a bar). The PNG's text chunks record the axes' units
+    (``cm2cl:axes``) and the bar's length (``cm2cl:scale_bar_um``) for readers and tests.
 
     matplotlib is imported here only (``pip install 'cm2cl[plot]'``)."""
     try:
@@ -103,9 +105,34 @@ def mip_png(volume, path, voxel_size_um=None, depths_um=None, title: str | None 
         cax = fig.add_axes([m + w_xy * fx + 0.01, m, 0.02, w_z * zscale * fy * 0.9])
         sm = ScalarMappable(norm=Normalize(depths[0], depths[-1]), cmap=cmap)
         fig.colorbar(sm, cax=cax, label="depth (um)" if ax_unit == "um" else "plane")
+    meta = {"cm2cl:axes": f"x ({lat}), y ({lat}), z ({ax_unit})"}
+    if lat == "um":
+        bar = scale_bar_um(w_xy)
+        _draw_scale_bar(ax_xz, bar, x0, w_xy)
+        meta["cm2cl:scale_bar_um"] = f"{bar:g}"
     if title:
         fig.suptitle(title)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, facecolor="white")
+    fig.savefig(path, facecolor="white", metadata=meta)
     return path
+
+
+def scale_bar_um(width_um: float) -> float:
+    """A round scale-bar length (1, 2 or 5 x 10^k um) near a fifth of ``width_um``."""
+    target = max(float(width_um), 1e-12) / 5.0
+    k = 10.0 ** np.floor(np.log10(target))
+    return float(max(m * k for m in (1.0, 2.0, 5.0) if m * k <= target))
+
+
+def _draw_scale_bar(ax, length_um, x0, w):
+    """A black bar of ``length_um`` under the right end of the XZ panel, at the height of its x label (in the
+    figure's margin: the panels keep only the data), drawn on the panel's x scale, its label to its left."""
+    from matplotlib.transforms import blended_transform_factory, offset_copy
+
+    tr = offset_copy(blended_transform_factory(ax.transData, ax.transAxes), fig=ax.figure, y=-24, units="points")
+    xb = x0 + w - length_um
+    ax.plot([xb, x0 + w], [0.0, 0.0], color="black", linewidth=3, solid_capstyle="butt", transform=tr, clip_on=False)
+    label = f"{length_um / 1000:g} mm" if length_um >= 1000 else f"{length_um:g} um"
+    ax.text(xb - 0.01 * w, 0.0, label, color="black", ha="right", va="center", fontsize=9, transform=tr,
+            clip_on=False)
