@@ -23,6 +23,11 @@ def test_study_runs_tiny_and_reports_presets(rt, tmp_path):
         assert 0 <= float(r["recall"]) <= 1 and float(r["objective_gap"]) > -1e-3
     # more iterations never end farther from the long run's objective (same problem, same weights)
     gap = {r["config"]: float(r["objective_gap"]) for r in table}
+    for r in table:   # iterations to 1% of the long run: reached where the row ends within 1%, never after its end
+        if float(r["objective_gap"]) <= 0.01:
+            assert r["it_to_1%"] and 1 <= int(r["it_to_1%"]) <= int(r["iterations"]) and float(r["s_to_1%"]) > 0
+        else:
+            assert not r["it_to_1%"]
     assert gap["30 iterations"] < gap["10 iterations"]
     assert any(r["pareto"] == "True" for r in table)
     md = (tmp_path / "accuracy_vs_time.md").read_text()
