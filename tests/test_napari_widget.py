@@ -93,10 +93,11 @@ def test_screenshot_shows_the_emitters_on_the_beads(make_napari_viewer, tmp_path
     img.rendering, img.contrast_limits = "mip", (0.0, float(np.asarray(img.data).max()) * 0.3)
     pts.face_color, pts.border_width, pts.size = "red", 0.0, 1.5     # size in voxels
     viewer.dims.ndisplay = 3
-    viewer.camera.perspective = 0.0
-    viewer.camera.angles = (0.0, 0.0, 90.0)
+    camera = getattr(viewer, "scene", viewer).camera      # napari 0.9 moved it under viewer.scene
+    camera.perspective = 0.0
+    camera.angles = (0.0, 0.0, 90.0)
     viewer.reset_view()
-    viewer.camera.zoom *= 3
+    camera.zoom *= 3
 
     def shot(image, points):
         img.visible, pts.visible = image, points
