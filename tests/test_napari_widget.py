@@ -118,3 +118,15 @@ def test_screenshot_shows_the_emitters_on_the_beads(make_napari_viewer, tmp_path
     pts.translate = tuple(np.asarray(pts.translate) + np.array([0.0, 200.0, 200.0]))
     _, moved = _blobs((lambda r: (r[..., 0] > 150) & (r[..., 1] < 80))(shot(False, True)))
     assert on_beads(moved) < 0.5
+
+
+def test_widget_docks_from_the_plugin_menu(make_napari_viewer):
+    """napari finds the widget through cm2cl's manifest (Plugins > Reconstruct (cm2cl)) and hands it the viewer;
+    its layer choices follow the viewer's layers."""
+    viewer = make_napari_viewer()
+    _, w = viewer.window.add_plugin_dock_widget("cm2cl", "Reconstruct (cm2cl)")
+    assert w.viewer is not None and list(w.psf.choices) == []
+    psf, y, _ = _problem()
+    viewer.add_image(psf, name="psf")
+    viewer.add_image(y, name="frame")
+    assert [c.name for c in w.psf.choices] == ["psf"] and [c.name for c in w.measurement.choices] == ["frame"]

@@ -153,10 +153,16 @@ def _make_widget_class():
 _CLASS = None
 
 
-def ReconstructWidget(napari_viewer):  # noqa: N802 - the manifest's widget factory, named as the class it makes
-    """The widget for ``napari_viewer`` (npe2 passes the viewer by this name); its class is built on first use,
-    so that importing this module needs neither napari nor Qt."""
-    global _CLASS
-    if _CLASS is None:
-        _CLASS = _make_widget_class()
-    return _CLASS(napari_viewer)
+class ReconstructWidget:
+    """The widget for ``napari_viewer`` (the manifest's widget; napari passes the viewer by this name, read
+    from ``__init__``'s signature). The Qt class is built on first use, so that importing this module needs
+    neither napari nor Qt; ``ReconstructWidget(viewer)`` returns an instance of it."""
+
+    def __new__(cls, napari_viewer):
+        global _CLASS
+        if _CLASS is None:
+            _CLASS = _make_widget_class()
+        return _CLASS(napari_viewer)
+
+    def __init__(self, napari_viewer):   # pragma: no cover - never runs: __new__ returns the Qt class's instance
+        raise AssertionError("unreachable")
