@@ -152,3 +152,47 @@ def test_dask_worker_killed_mid_job_resubmits_and_cluster_lost_says_how_to_resum
     assert s.skipped >= 1 and s.computed + s.skipped == 5
     np.testing.assert_array_equal(np.asarray(zarr.open_group(str(out), mode="r")["0"]),
                                   np.asarray(zarr.open_group(str(ref), mode="r")["0"]))
+
+
+def test_dask_worker_whose_device_cannot_compile_stops_in_one_line_and_resumes(rt, tmp_path, monkeypatch):
+    """Issue 27: a worker whose OpenCL device cannot build the kernels (here: from the second frame on) stops
+    the job with the build failure's one line (what failed where), not a Dask traceback; the frame finished
+    before it is kept, and a rerun on a working cluster computes only the rest, to the local result's bits."""
+    import distributed
+
+    from cm2cl.errors import KernelBuildError
+    from cm2cl.jobs import executors
+
+    _frames(tmp_path, n=4)
+    series, psf = str(tmp_path / "series.tif"), tmp_path / "psf.ome.tif"
+    ref = tmp_path / "l.ome.zarr"
+    cm2cl.reconstruct_series(series, psf, ref, **KW)
+    real, count = executors.solve_frame, tmp_path / "calls"
+
+    def broken(*a, **k):      # counted in a file: Dask sends the function to its worker by value
+        with open(count, "a") as f:
+            f.write("x")
+        if count.stat().st_size > 1:
+            raise KernelBuildError("build failed\nlog", summary="kernels/splits.cl did not build on 'cpu-znver5': "
+                                   "error: unable to create target")
+        return real(*a, **k)
+
+    out = tmp_path / "b.ome.zarr"
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False,
+                                  dashboard_address=None) as cluster, distributed.Client(cluster) as client:
+        monkeypatch.setattr(executors, "solve_frame", broken)
+        with pytest.raises(KernelBuildError) as info:
+            cm2cl.reconstruct_series(series, psf, out, client=client, **KW)
+        assert "unable to create target" in info.value.summary and "\n" not in info.value.summary
+        monkeypatch.undo()
+        from cm2cl.jobs.store import FrameStore
+
+        st = FrameStore.open_readonly(out)
+        try:
+            assert len(st.done()) == 1
+        finally:
+            st.close()
+        s = cm2cl.reconstruct_series(series, psf, out, client=client, **KW)
+        assert s.computed == 3
+    np.testing.assert_array_equal(np.asarray(zarr.open_group(str(out), mode="r")["0"]),
+                                  np.asarray(zarr.open_group(str(ref), mode="r")["0"]))
