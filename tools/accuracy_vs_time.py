@@ -241,6 +241,12 @@ def plot(rows, case_name, path):
     plt.close(fig)
 
 
+def to_gap(r, name: str) -> str:
+    """'iterations / seconds' to a gap, or '-' where the solve stopped before it (or has no objective gap)."""
+    it = r.get(f"it_to_{name}")
+    return "-" if it is None else f"{it} / {r[f's_to_{name}']:.1f}"
+
+
 def fmt(v, spec):
     if v is None or v == "":
         return ""
@@ -268,8 +274,7 @@ def markdown(rows, cases, install, tiny) -> str:
             lines.append("| " + " | ".join([
                 r["config"], fmt(r["seconds"], ".2f"), str(r["iterations"]), fmt(r["converged"], ""),
                 fmt(r["device_mib"], ".0f"), fmt(r.get("objective_gap"), ".2e"),
-                f"{fmt(r.get('it_to_1%'), '')} / {fmt(r.get('s_to_1%'), '.1f')}",
-                f"{fmt(r.get('it_to_0.1%'), '')} / {fmt(r.get('s_to_0.1%'), '.1f')}", fmt(r.get("data_residual"), ".4f"),
+                to_gap(r, "1%"), to_gap(r, "0.1%"), fmt(r.get("data_residual"), ".4f"),
                 fmt(r.get("recall"), ".2f"), fmt(r.get("precision"), ".2f"), fmt(r.get("lateral_rms_um"), ".1f"),
                 fmt(r.get("axial_rms_um"), ".1f"), fmt(r.get("nrmse"), ".3f"), fmt(r["pareto"], "")]) + " |")
         lines.append("")
