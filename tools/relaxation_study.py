@@ -6,7 +6,7 @@ defaults (the stopping rule) the iterations, the objective gap and the quality w
         [--out docs/relaxation.md]
 
 Cases: the quality suite's scenes (cm2cl/analysis/quality.py: rendered with a PSF the reconstruction is not
-given) and the real DiffuserCam 2D (binned 4x) and 3D (binned 4x) data. The reference objective of a case is
+given), ``cm2cl demo``'s scene, and the real DiffuserCam 2D (binned 4x) and 3D (binned 4x) data. The reference objective of a case is
 the lowest final objective of its solves (every alpha reaches the same minimiser); "to 1%" is the
 iteration after which the objective stays within 1% of it (0.1% likewise), '-' where it never does.
 """
@@ -36,6 +36,11 @@ def load_case(name: str):
     """(psf, y, beads or None) of a case."""
     import datasets
 
+    if name == "demo":          # cm2cl demo's scene, reconstructed as the demo does (its measurement as given)
+        from cm2cl.simulate import simulate_scene
+
+        sim = simulate_scene("demo_beads", seed=7)
+        return sim.psf, sim.measurement.astype(np.float64), None
     if name == "dc2d":
         psf, y = datasets.diffusercam_2d(4)
         return psf, y, None
@@ -136,7 +141,7 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--alphas", default="1,1.5,1.6,1.8")
     ap.add_argument("--iters", type=int, default=2000)
-    ap.add_argument("--cases", default="beads,mm_aberr,photons200,bg_haze10,fibres,dc2d,dc3d")
+    ap.add_argument("--cases", default="beads,mm_aberr,photons200,bg_haze10,fibres,demo,dc2d,dc3d")
     ap.add_argument("--out", type=Path, default=ROOT / "docs" / "relaxation.md")
     args = ap.parse_args(argv)
     alphas = [float(a) for a in args.alphas.split(",")]
