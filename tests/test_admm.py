@@ -11,6 +11,7 @@ from cm2cl.solver.admm import ADMMSolver
 from cm2cl.solver.api import reconstruct
 from cm2cl.errors import DeviceError
 from cm2cl.solver.params import ADMMParams
+from cm2cl.solver.terms import default_terms
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "diffusercam-2d"
 
@@ -36,33 +37,37 @@ def precision(rt):
     return (np.float64, 1e-12, 1e-10) if rt.caps.fp64 else (np.float32, 1e-6, 2e-5)
 
 
+@pytest.mark.parametrize("tv", [True, False])
 @pytest.mark.parametrize("slabs", [None, 2])
-def test_x_step_solves_its_normal_equations(rt, dtype, backend, slabs):
-    """Residual of (mu_v H^T H + c I) x - rhs with spatial-domain (shift-and-add) operators.
+def test_x_step_solves_its_normal_equations(rt, dtype, backend, slabs, tv):
+    """Residual of (mu_v H^T H + c I) x - rhs with spatial-domain (shift-and-add) operators, for the
+    default set with TV (its state s, u, p) and without (TV's weight 0: s alone, c = mu_w).
 
     The PSF is scaled to ||H|| = 1 (as the solver's normalisation does), so the system's condition
-    number is <= (c + mu_v) / c = 1.4 and the relative residual is a few float roundings."""
+    number is <= (c + mu_v) / c = 2.8 and the relative residual is a few float roundings."""
     rng = np.random.default_rng(11)
     nz, M, P = 3, (10, 12), (20, 24)
     psf = rng.random((nz,) + M) ** 3
     psf *= ref.normalisation(psf, np.ones(M), P)[0]
-    s = ADMMSolver(psf.astype(dtype), ADMMParams(normalize=False, tv_axial_weight=0.6, l1_plane_power=2.0), dtype=dtype,
-                   backend=backend, padded_shape=P, max_slab_planes=slabs)
+    prm = ADMMParams(normalize=False, tv_axial_weight=0.6, l1_plane_power=2.0, tv=1.0 if tv else 0.0)
+    s = ADMMSolver(psf.astype(dtype), prm, dtype=dtype, backend=backend, padded_shape=P, max_slab_planes=slabs)
+    assert s.terms.volumes == (("x", "g", "s", "u", "px", "py", "pz") if tv else ("x", "g", "s"))
     # the lean state: s (w and rho derive from it), u, the TV dual p (eta derives from it)
-    st = {k: rng.standard_normal((nz,) + P) for k in ("u", "s", "px", "py", "pz")}
+    st = {k: rng.standard_normal((nz,) + P) for k in (("u", "s", "px", "py", "pz") if tv else ("s",))}
     v, xi = rng.standard_normal(P), rng.standard_normal(P)
     for k, a in st.items():
         s.set_volume(k, a)
     s.set_plane("v", v)
     s.set_plane("xi", xi)
-    s.l1_split, s.tv_split = (0.3, 0.9), 0.2   # s made with l1 = 0.3 at mu_w = 0.9; eta = 0.2 div p
-    mu_v, mu_u, mu_w = 0.7, 1.3, 0.4
+    s.l1_split, s.tv_split = (0.3, 0.9), 0.2 if tv else 0.0   # s made with l1 = 0.3 at mu_w = 0.9; eta = 0.2 div p
+    mu_v, mu_u, mu_w = 0.7, 1.3 if tv else 0.0, 0.4
     s.x_step(mu_v, mu_u, mu_w)
     x = s.get_volume("g").astype(np.float64)
     lw = s.l1_plane_weights[:, None, None]
     w, rho = np.maximum(st["s"] - 0.3 * lw / 0.9, 0), np.minimum(0.9 * st["s"], 0.3 * lw)
-    eta = 0.2 * ref.tv_div(st["px"], st["py"], st["pz"], 0.6)
-    rhs = ref.correlate_spatial(psf, mu_v * v - xi) + (mu_u * st["u"] - eta) + (mu_w * w - rho)
+    rhs = ref.correlate_spatial(psf, mu_v * v - xi) + (mu_w * w - rho)
+    if tv:
+        rhs += mu_u * st["u"] - 0.2 * ref.tv_div(st["px"], st["py"], st["pz"], 0.6)
     Hx = ref.convolve_spatial(psf, x)
     lhs = mu_v * ref.correlate_spatial(psf, Hx) + (mu_u + mu_w) * x
     tol = 2e-6 if dtype == np.float32 else 1e-13
@@ -184,19 +189,50 @@ def test_bad_inputs(rt, monkeypatch):
     monkeypatch.setattr(rt, "caps", fake)
     with pytest.raises(DeviceError, match="float64 requested but device .* has no fp64 support"):
         reconstruct(y, psf, dtype=np.float64)
-    # 1 MiB of device memory: the 4 planes do not fit resident, so they are streamed in slabs; kept
-    # resident on request that is refused; 256 KiB do not hold even one streamed plane
-    small = device.Capabilities(**{**rt.caps.__dict__, "global_mem": 2**20})
+    # 640 KiB of device memory: the 4 planes (3 real volumes each without TV) do not fit resident, so
+    # they are streamed in slabs; kept resident on request that is refused; 256 KiB do not hold even one
+    # streamed plane. Faked as a GPU: a CPU device's memory is the host's (memory.device_budget)
+    small = device.Capabilities(**{**rt.caps.__dict__, "global_mem": 640 * 2**10, "kind": "GPU"})
     monkeypatch.setattr(rt, "caps", small)
     with pytest.raises(DeviceError, match=r"problem too large to keep on the device: 4 planes on a 64 x 80 padded grid need .* GiB per device"):
         reconstruct(y32, psf32, padded_shape=(64, 80), stream=False)
     rec = reconstruct(y32, psf32, padded_shape=(64, 80), max_iter=2)
-    assert rec.info["layout"][0]["streamed"] and rec.info["device_bytes"] <= 0.9 * 2**20
-    tiny = device.Capabilities(**{**rt.caps.__dict__, "global_mem": 2**18})
+    assert rec.info["layout"][0]["streamed"] and rec.info["device_bytes"] <= 0.9 * 640 * 2**10
+    tiny = device.Capabilities(**{**rt.caps.__dict__, "global_mem": 2**18, "kind": "GPU"})
     monkeypatch.setattr(rt, "caps", tiny)
     with pytest.raises(DeviceError, match=r"problem too large even streamed: one depth plane of a 64 x 80 padded grid needs [\d.]+ MiB"):
         reconstruct(y32, psf32, padded_shape=(64, 80))
 
+
+@pytest.mark.parametrize("penalty", ["balance", "adaptive"])
+def test_set_without_tv_gives_the_iterates_of_a_tv_weight_of_zero(rt, penalty):
+    """A TV weight of 0 (the default) gets the fused set without TV's state (x, g, s: 3 real volumes per
+    voxel, the rhs made from s every iteration); its iterates are those of the set with TV's state at a
+    weight of 0 (to float rounding: the same sums in another order) and of the float64 reference, its
+    reports of the u split those of u = x exactly (a zero primal residual and a zero dual)."""
+    dtype, same, tol = precision(rt)
+    psf, _, y = bead_problem(4)
+    kw = dict(l1=1e-3, tv=0.0, max_iter=25, tol=0, penalty=penalty)
+    out = []
+    for terms in (None, default_terms(True, ADMMParams().background, tv=True)):
+        s = ADMMSolver(psf, ADMMParams(**kw), dtype=dtype, backend="cl", padded_shape=(64, 80), max_slab_planes=3,
+                       terms=terms)
+        if terms is None:
+            assert s.terms.volumes == ("x", "g", "s") and not s.terms.has_tv
+            s.parts[0].k["rhs_volume"] = counted = _Counted(s.parts[0].k["rhs_volume"])
+        rec = s.solve(y)
+        if terms is None:
+            assert counted.calls == 2 * 25   # two slabs, every iteration
+            assert np.all(np.asarray(rec.history["r_u"]) == 0)
+            np.testing.assert_array_equal(s.get_volume("u"), s.get_volume("x"))
+            assert not np.any(s.get_volume("eta"))
+        out.append(rec.volume_padded)
+    r0 = ref.admm(y, psf, padded_shape=(64, 80), **kw)
+    assert np.linalg.norm(out[0] - out[1]) / np.linalg.norm(out[1]) < 10 * same
+    assert np.linalg.norm(out[0] - r0.volume_padded) / np.linalg.norm(r0.volume_padded) < tol
+    with pytest.raises(ValueError, match="terms: a TV weight of 0.001 for a set without TV"):
+        ADMMSolver(psf, ADMMParams(**{**kw, "tv": 1e-3}), dtype=dtype, backend="cl", padded_shape=(64, 80),
+                   terms=default_terms(True, ADMMParams().background, tv=False)).solve(y)
 
 @pytest.mark.parametrize("P", [(64, 90), (63, 84)])
 @pytest.mark.parametrize("dtype,vw,rows", [(np.float32, 1, None), (np.float32, None, 5), (np.float32, None, None),
@@ -267,14 +303,16 @@ def test_rhs_made_by_tv_finish_gives_the_same_iterates(rt, tv, penalty):
     """tv_finish makes the next x step's rhs for the penalties of its iteration; the x step uses it where
     mu_u and mu_w still hold and runs rhs_volume only on the first iteration and after they changed.
     Solves with and without that agree to float64 rounding (slabs: halos of pz), and with the reference;
-    "balance" changes the penalties on most iterations here, "adaptive" on none."""
+    "balance" changes the penalties on most iterations here, "adaptive" on none. The set with TV's state
+    throughout (at a weight of 0 too: its tau = 0 branch)."""
     dtype, same, tol = precision(rt)
     psf, _, y = bead_problem(4)
     # plain ADMM: over-relaxed, "balance" changes a penalty on every one of these 25 iterations
     kw = dict(l1=1e-3, tv=tv, max_iter=25, tol=0, penalty=penalty, relaxation=1.0)
     out, calls = [], []
     for early in (True, False):
-        s = ADMMSolver(psf, ADMMParams(**kw), dtype=dtype, backend="cl", padded_shape=(64, 80), max_slab_planes=3)
+        s = ADMMSolver(psf, ADMMParams(**kw), dtype=dtype, backend="cl", padded_shape=(64, 80), max_slab_planes=3,
+                       terms=default_terms(True, ADMMParams().background, tv=True))
         s.rhs_in_tv_finish = early
         s.parts[0].k["rhs_volume"] = counted = _Counted(s.parts[0].k["rhs_volume"])
         rec = s.solve(y)

@@ -1,4 +1,4 @@
-"""The lean iteration (cm2cl.solver.admm, module docstring): 7 real volumes per plane, and w, rho, eta
+"""The lean iteration (cm2cl.solver.admm, module docstring): 7 real volumes per plane (3 without TV), and w, rho, eta
 derived from the state (s, p) equal to the float64 twin's explicit ones, across penalty changes and from
 a warm start."""
 
@@ -11,6 +11,7 @@ from cm2cl.solver.admm import ADMMSolver
 from cm2cl.solver.memory import REAL_VOLUMES, memory_estimate
 from cm2cl.solver.params import ADMMParams
 from cm2cl.solver.parts import COMPLEX, REAL
+from cm2cl.solver.terms import state_counts
 
 from test_admm import bead_problem
 
@@ -75,45 +76,53 @@ def test_penalty_change_keeps_w_and_rho(rt):
     np.testing.assert_allclose(s.get_volume("rho"), rho_new, rtol=1e-12, atol=1e-14)
 
 
-def test_solver_keeps_seven_real_volumes_per_plane(rt, dtype):
-    """Per depth plane the device holds 7 real volumes and the 2 complex ones, and the memory model's
-    per-plane figure is what the parts allocate (resident), what the host holds (streamed)."""
+@pytest.mark.parametrize("tv", [1e-3, 0.0])
+def test_solver_keeps_seven_real_volumes_per_plane(rt, dtype, tv):
+    """Per depth plane the device holds 7 real volumes (3 without TV: x, g, s) and the 2 complex ones,
+    and the memory model's per-plane figure is what the parts allocate (resident), what the host holds
+    (streamed)."""
     psf, _, _ = bead_problem(3)
     nz = psf.shape[0]
     assert len(REAL) == REAL_VOLUMES == 7 and COMPLEX == ("spec", "hs")
-    est = memory_estimate(nz, P, dtype, "cl")
+    real = REAL if tv else ("x", "g", "s")
+    s = ADMMSolver(psf.astype(dtype), ADMMParams(tv=tv), dtype=dtype, backend="cl", padded_shape=P, max_slab_planes=3)
+    counts = state_counts(s.terms)
+    assert counts["real_volumes"] == len(real) and counts["nslots"] == len(s.slots)
+    est = memory_estimate(nz, P, dtype, "cl", **counts)
     item = np.dtype(dtype).itemsize
     spec = int(np.prod(spectrum_shape(P, "cl"))) * 2 * item
-    assert est["volumes_per_plane"] == 7 * P[0] * P[1] * item + 2 * spec
-    s = ADMMSolver(psf.astype(dtype), ADMMParams(), dtype=dtype, backend="cl", padded_shape=P, max_slab_planes=3)
+    assert est["volumes_per_plane"] == len(real) * P[0] * P[1] * item + 2 * spec
     (part,) = s.parts
-    assert set(part.vol) == set(REAL) | set(COMPLEX)
+    assert set(part.vol) == set(real) | set(COMPLEX)
     assert sum(v.nbytes for v in part.vol.values()) == nz * est["volumes_per_plane"]
     assert part.device_bytes - nz * est["volumes_per_plane"] <= est["fixed"]
-    st = ADMMSolver(psf.astype(dtype), ADMMParams(), dtype=dtype, backend="cl", padded_shape=P, stream=True,
+    st = ADMMSolver(psf.astype(dtype), ADMMParams(tv=tv), dtype=dtype, backend="cl", padded_shape=P, stream=True,
                     max_slab_planes=2)
     assert st.host_bytes == nz * est["volumes_per_plane"]
     assert sum(a.nbytes for a in st.parts[0].slots[0].values()) == 2 * est["volumes_per_plane"]
 
 
-def test_lean_layout_keeps_seven_real_volumes_and_the_psf_spectra_per_plane(rt, dtype):
+@pytest.mark.parametrize("tv", [1e-3, 0.0])
+def test_lean_layout_keeps_seven_real_volumes_and_the_psf_spectra_per_plane(rt, dtype, tv):
     """The lean layout (cm2cl.solver.parts.LEAN_SCRATCH): per depth plane the device holds the 7 real
-    volumes and the PSF spectra, nothing else; the x spectra are one slab, whatever the depth; the memory
-    model's figures are what the part allocates."""
+    volumes (3 without TV) and the PSF spectra, nothing else; the x spectra are one slab, whatever the
+    depth; the memory model's figures are what the part allocates."""
     psf, _, _ = bead_problem(3)
     nz = psf.shape[0]
     item = np.dtype(dtype).itemsize
     spec = int(np.prod(spectrum_shape(P, "cl"))) * 2 * item
-    s = ADMMSolver(psf.astype(dtype), ADMMParams(), dtype=dtype, backend="cl", padded_shape=P, lean=True,
+    real = REAL if tv else ("x", "g", "s")
+    s = ADMMSolver(psf.astype(dtype), ADMMParams(tv=tv), dtype=dtype, backend="cl", padded_shape=P, lean=True,
                    max_slab_planes=1)
     (part,) = s.parts
-    assert part.lean and s.lean and set(part.vol) == set(REAL) | {"hs"} and set(part.scratch) == {"spec"}
-    assert sum(v.nbytes for v in part.vol.values()) == nz * (7 * P[0] * P[1] * item + spec)
+    assert part.lean and s.lean and set(part.vol) == set(real) | {"hs"} and set(part.scratch) == {"spec"}
+    assert sum(v.nbytes for v in part.vol.values()) == nz * (len(real) * P[0] * P[1] * item + spec)
     assert part.scratch["spec"].nbytes == spec        # one slab of one plane
-    est = memory_estimate(nz, P, dtype, "cl", lean_slab=1)
-    assert s.memory == est and est["volumes_per_plane"] == 7 * P[0] * P[1] * item + spec
+    counts = state_counts(s.terms)
+    est = memory_estimate(nz, P, dtype, "cl", lean_slab=1, **counts)
+    assert s.memory == est and est["volumes_per_plane"] == len(real) * P[0] * P[1] * item + spec
     assert 0 <= part.device_bytes - nz * est["volumes_per_plane"] <= est["fixed"]
-    whole = memory_estimate(nz, P, dtype, "cl")
+    whole = memory_estimate(nz, P, dtype, "cl", **counts)
     assert whole["total"] - est["total"] == (nz - 1) * spec - P[0] * P[1] * item
 
 

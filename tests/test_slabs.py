@@ -230,14 +230,17 @@ def test_cli_streams_under_a_memory_cap_and_plans_it(rt, tmp_path, capsys):
     tifffile.imwrite(tmp_path / "psf.tif", psf, photometric="minisblack")
     tifffile.imwrite(tmp_path / "meas.tif", y)
     base = ["reconstruct", str(tmp_path / "meas.tif"), "--psf", str(tmp_path / "psf.tif"), "--max-iter", "15", "--quiet"]
-    est = memory_estimate(7, (64, 80), np.float32, "cl")
+    from cm2cl.solver.params import ADMMParams
+    from cm2cl.solver.terms import state_counts, terms_for
+
+    est = memory_estimate(7, (64, 80), np.float32, "cl", **state_counts(terms_for(ADMMParams())))   # no TV
     dbl = rt.caps.kind != "CPU"      # double-buffered slabs on GPUs, one buffer set on CPUs
     cap = str(est["fixed"] + 3 * (est["per_plane"] + dbl * est["volumes_per_plane"]))
     assert main(base + ["-o", str(tmp_path / "a.ome.tif"), "--max-memory", cap, "--dry-run"]) == 0
     text = capsys.readouterr().out
     suffix = " (double-buffered)" if dbl else ""
     assert f"planes 0..6, streamed in slabs of 3 planes{suffix}" in text
-    moved = streamed_bytes_per_iteration(7, (64, 80), np.float32, "cl", 2, relaxed=True)
+    moved = streamed_bytes_per_iteration(7, (64, 80), np.float32, "cl", None)
     assert f"moved between host and devices per iteration: {moved / 2**30:.2f} GiB" in text
     assert "s per iteration" in text and "host <-> device" in text
     assert main(base + ["-o", str(tmp_path / "a.ome.tif"), "--max-memory", cap]) == 0
@@ -252,7 +255,8 @@ def test_cli_streams_under_a_memory_cap_and_plans_it(rt, tmp_path, capsys):
     assert main(base + ["-o", str(tmp_path / "c.ome.tif"), "--max-memory", cap, "--stream", "never"]) == 2
     assert "too large to keep on the device" in capsys.readouterr().err
     # between the lean and the whole state's needs: resident and lean, the same volume
-    lean_cap = str((est["total"] + memory_estimate(7, (64, 80), np.float32, "cl", lean_slab=2)["total"]) // 2)
+    lean = memory_estimate(7, (64, 80), np.float32, "cl", lean_slab=2, **state_counts(terms_for(ADMMParams())))
+    lean_cap = str((est["total"] + lean["total"]) // 2)
     assert main(base + ["-o", str(tmp_path / "d.ome.tif"), "--max-memory", lean_cap, "--dry-run"]) == 0
     assert "planes 0..6, resident, lean (x spectra in slabs of 2 planes)" in capsys.readouterr().out
     assert main(base + ["-o", str(tmp_path / "d.ome.tif"), "--max-memory", lean_cap]) == 0
@@ -283,6 +287,6 @@ def test_pinned_host_copies_stream_the_same(rt, monkeypatch):
     real = Part.__init__
     monkeypatch.setattr(Part, "__init__", lambda self, *ar, **k: real(self, *ar, **{**k, "pinned": True}))
     pinned = ADMMSolver(psf, prm, device=rt, padded_shape=kw["padded_shape"], stream=True, max_slab_planes=2)
-    assert len(pinned.parts[0]._pinned) == (7 + 2) * 4    # every volume's four slabs (7 real, 2 complex)
+    assert len(pinned.parts[0]._pinned) == (3 + 2) * 4    # every volume's four slabs (3 real without TV, 2 complex)
     b = pinned.solve(y)
     assert np.array_equal(a.volume, b.volume)

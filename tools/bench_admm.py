@@ -93,7 +93,8 @@ def main(argv=None):
         for backend, lean in [(b, False) for b in fft.available_backends()] + [("cl", True)]:
             s = ADMMSolver(psf, p, backend=backend, lean=lean)
             s.solve(y)  # warm-up: kernel builds, FFT plans
-            nbytes = iteration_bytes(nz, s.P, np.float32, backend, p.tv_iters, s.lean, p.relaxation != 1)
+            nbytes = iteration_bytes(nz, s.P, np.float32, backend, p.tv_iters if s.terms.has_tv else None, s.lean,
+                                     p.relaxation != 1)
             runs = []
             for _ in range(RUNS):
                 bw = copy_bandwidth(rt)

@@ -86,7 +86,8 @@ def bench(size: str, iters: int, backends) -> list[list[str]]:
         rt.queue.finish()
         fft_t = time.perf_counter() - t
         bw = copy_bandwidth(rt)
-        nbytes = iteration_bytes(nz, s.P, np.float32, backend, p.tv_iters, s.lean, p.relaxation != 1)
+        nbytes = iteration_bytes(nz, s.P, np.float32, backend, p.tv_iters if s.terms.has_tv else None, s.lean,
+                                 p.relaxation != 1)
         layout = "streamed" if any(q.streamed for q in s.parts) else ("lean" if s.lean else "resident")
         rows.append([f"{my} x {mx} x {nz}", backend, f"{s.P[0]} x {s.P[1]}", layout, f"{dev:.4f}",
                      f"{fft_t * 1e3:.1f} ({fft_t / dev:.0%})", f"{bw / 1e9:.0f}", f"{dev * bw / nbytes:.1f}",

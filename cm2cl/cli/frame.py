@@ -28,7 +28,7 @@ def command(args, params: ADMMParams) -> int:
     from ..io.publish import OutputSet
 
     out = Path(args.output)
-    check_headers(args)      # shapes and sizes from the TIFF headers, before decoding anything
+    check_headers(args, params)   # shapes and sizes from the TIFF headers, before decoding anything
     off, psf_off = offsets(args)
     meas, mmeta = _read_measurement(args)
     psf, pmeta = read_psf(args)

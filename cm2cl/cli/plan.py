@@ -11,17 +11,20 @@ from ..solver.params import ADMMParams
 from .inputs import STREAM, check_bin, check_psf_shape, devices_arg
 
 
-def layout(args, nz, sensor, dt, backend, padded_shape=None):
-    """(padded grid, the planner's layout) for a single frame (DeviceError when nothing fits); the grid is
+def layout(args, nz, sensor, dt, backend, params: ADMMParams, padded_shape=None):
+    """(padded grid, the planner's layout) for a single frame solved with ``params`` (its terms' state:
+    without TV 3 real volumes per voxel, with 7; DeviceError when nothing fits); the grid is
     ``padded_shape`` when given (support padding), else the full one."""
     from ..device import get_runtime
     from ..solver.forward import choose_padded_shape
     from ..solver.memory import plan_layout
+    from ..solver.terms import state_counts, terms_for
 
     rts = [get_runtime(d) for d in devices_arg(args.device)]
     P = tuple(padded_shape) if padded_shape is not None else choose_padded_shape(sensor, backend)
+    terms = terms_for(params)
     return P, plan_layout(nz, P, dt, backend, rts, max_memory=args.max_memory, stream=STREAM[args.stream],
-                          lean=STREAM[args.lean])
+                          lean=STREAM[args.lean] if terms.fused else False, **state_counts(terms))
 
 
 def _headers(args):
@@ -49,7 +52,7 @@ def _host_words(args) -> str:
     return "allowed (--host-memory)" if args.host_memory else "available"
 
 
-def check_headers(args) -> None:
+def check_headers(args, params: ADMMParams) -> None:
     """Refuse, from the headers alone, inputs of the wrong shape and problems that cannot fit: the
     host memory to decode them (float64) and to hold streamed slabs, and the devices' memory."""
     from ..solver.memory import host_available_bytes
@@ -62,7 +65,7 @@ def check_headers(args) -> None:
     backend, rt = backend_of(args)
     dt = rt.check_dtype(np.dtype(args.dtype))
     nz = ps[0] if len(ps) == 3 else 1
-    _, lay = layout(args, nz, tuple(n // args.bin for n in ms), dt, backend)
+    _, lay = layout(args, nz, tuple(n // args.bin for n in ms), dt, backend, params)
     need, streamed = _decoded_bytes(ms, ps), sum(lp.host_bytes for lp in lay)
     have = args.host_memory or host_available_bytes()
     if have and need + streamed > have:
@@ -85,7 +88,7 @@ def dry_run(args, params: ADMMParams) -> int:
     nz = ps[0] if len(ps) == 3 else 1
     host_cap = args.host_memory or host_available_bytes()
     try:
-        P, lay = layout(args, nz, sensor, dt, backend)
+        P, lay = layout(args, nz, sensor, dt, backend, params)
         problem = None
     except DeviceError as exc:
         P, lay, problem = None, [], str(exc)
@@ -100,7 +103,7 @@ def dry_run(args, params: ADMMParams) -> int:
                f"{lp.host_bytes / 2**30:.2f} GiB of host memory" if lp.streamed else
                f"resident, lean (x spectra in slabs of {lp.slab_planes} planes)" if lp.lean else "resident")
         if lp.streamed:
-            moved += streamed_bytes_per_iteration(lp.z1 - lp.z0, P, dt, backend, params.tv_iters,
+            moved += streamed_bytes_per_iteration(lp.z1 - lp.z0, P, dt, backend, _tv_iters(params),
                                                   relaxed=params.relaxation != 1)
         print(f"  device {lp.rt.caps.name} (#{lp.rt.caps.index}): planes {lp.z0}..{lp.z1 - 1}, {how}; "
               f"{lp.device_bytes / 2**30:.2f} GiB on the device")
@@ -133,6 +136,13 @@ def _tile_window(args, ms, sensor):
     return max(b - a for (a, b), _ in tp.windows), max(d - c for _, (c, d) in tp.windows)
 
 
+def _tv_iters(params: ADMMParams):
+    """TV's inner iterations for the traffic model, None for a solve without TV (its weight 0)."""
+    from ..solver.terms import has_tv
+
+    return params.tv_iters if has_tv(params) else None
+
+
 def _expected(lay, P, dt, backend, params: ADMMParams, moved: int) -> None:
     """The bytes moved and the time expected per iteration, from rates measured now."""
     from ..device.rates import copy_rate, transfer_rate
@@ -141,7 +151,7 @@ def _expected(lay, P, dt, backend, params: ADMMParams, moved: int) -> None:
     rts = {id(lp.rt): lp.rt for lp in lay}
     copy = {k: copy_rate(rt) for k, rt in rts.items()}
     xfer = {k: transfer_rate(rt) for k, rt in rts.items()} if moved else {k: 1.0 for k in rts}
-    t = expected_seconds(lay, P, dt, backend, params.tv_iters, copy, xfer)
+    t = expected_seconds(lay, P, dt, backend, _tv_iters(params), copy, xfer)
     iters = params.max_iter
     print(f"  moved between host and devices per iteration: {moved / 2**30:.2f} GiB")
     print(f"  expected: about {t:.2g} s per iteration, {t * iters / 60:.2g} min for {iters} iterations (rates "

@@ -46,7 +46,7 @@ def command(args, params: ADMMParams) -> int:
     if not args.scheduler:   # a frame that cannot fit (--stream never, --max-memory) is refused before the store
         from .plan import backend_of, layout
 
-        layout(args, shape[0], shape[1:], dt, backend_of(args)[0], solver_kw.get("padded_shape"))
+        layout(args, shape[0], shape[1:], dt, backend_of(args)[0], params, solver_kw.get("padded_shape"))
     record = {"what": "cm2cl reconstruction series", "psf": str(args.psf), "params": params.as_dict(),
               "frames": [f"{f.path}[{f.index}]" for f in series.frames[:1000]], "scale": wp.scale, "prep": prep}
     t0 = time.perf_counter()

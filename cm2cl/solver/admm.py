@@ -28,7 +28,7 @@ from .memory import fft_scratch_per_plane, memory_estimate, plan_layout
 from .params import ADMMParams
 from .parts import Part
 from .result import Reconstruction
-from .terms import plane_weights, terms_for
+from .terms import plane_weights, state_counts, terms_for
 from .walk import Walk
 
 log = logging.getLogger(__name__)
@@ -82,12 +82,12 @@ class ADMMSolver:
                  overlap="auto", lean="auto", terms=None):
         psf = validate.psf_stack(psf, "psf")
         # a first normalisation in float64 on the host, so that no input scale over- or underflows
-        # in float32 on the device: sum_i (sum |h_i|)^2 bounds max_k sum_i |H_i(k)|^2 from above
+        # in float32 on the device: sum_i (sum |h_i|)^2 bounds max_k sum_i |H_i(k)|^2 from above. The
+        # stack is scaled plane by plane where it is used, never copied whole (a full frame's is gigabytes)
         self.psf_prescale = 1.0
-        psf = np.asarray(psf, np.float64)   # float32 input too: its sums in float64
         if params.normalize:
-            self.psf_prescale = 1.0 / np.sqrt(np.sum(np.abs(psf).reshape(psf.shape[0], -1).sum(axis=1) ** 2))
-        psf = psf * self.psf_prescale
+            l1 = np.array([np.abs(np.asarray(h, np.float64)).sum() for h in psf])
+            self.psf_prescale = 1.0 / np.sqrt(np.sum(l1 ** 2))
         self.p = params
         self.terms = terms if terms is not None else terms_for(params)
         if not self.terms.fused and lean is True:
@@ -133,7 +133,7 @@ class ADMMSolver:
     def _lay_out(self, rts, max_memory, stream, max_slab_planes, overlap, lean) -> None:
         """The parts (planes over devices, :func:`plan_layout`), their kernels and row layouts."""
         P, rt = self.P, self.rt
-        counts = {"real_volumes": len(self.terms.volumes), "nslots": len(self.slots), "planes": len(self.terms.planes)}
+        counts = state_counts(self.terms)
         scratch = fft_scratch_per_plane(rt, P, self.dtype, self.backend)
         self.layout = plan_layout(self.nz, P, self.dtype, self.backend, rts, max_memory=max_memory,
                                   stream=stream, max_slab_planes=max_slab_planes, scratch_per_plane=scratch,
@@ -173,12 +173,14 @@ class ADMMSolver:
     def _psf_spectra(self, psf) -> None:
         """Each part's PSF spectra and the ||H|| = 1 normalisation from sum_i |H_i|^2 (over all parts, in
         float64), the l1 plane weights and the buffers' bytes."""
-        nf, P = self.nfreq, self.P
+        nf, P, pre = self.nfreq, self.P, self.psf_prescale
         for part in self.parts:
             hn2 = part.planes["hn2"]
             for j, n, a in part.slabs(writes=("hs",), scratch=("g",)):
-                z = part.z0 + part.bounds[j][0]   # one slab's planes on the padded grid at a time (host memory)
-                a["g"].set(centered_psf(psf[z:z + n].astype(self.dtype), P))
+                z = part.z0 + part.bounds[j][0]   # one plane on the padded grid at a time in host memory
+                for k in range(n):
+                    h = (np.asarray(psf[z + k], np.float64) * pre).astype(self.dtype)
+                    a["g"][k:k + 1].set(centered_psf(h[None], P))
                 part.plan(n, self.backend).forward(a["g"], a["hs"])
                 part.kernels("spectral_power", (nf,), hn2=hn2, H=a["hs"], planes=n, nfreq=nf, first=j == 0)
         if len(self.parts) > 1:
@@ -191,11 +193,12 @@ class ADMMSolver:
             for part in self.parts:
                 part.scale("hs", self.psf_scale)
                 scale(part.rt, part.planes["hn2"], self.psf_scale**2)
-        psf_n = psf * self.psf_scale  # the normalised stack the solver sees (float64, host)
-        (y0, y1), (x0, x1) = psf_support(psf_n)
+        # the normalised stack the solver sees is psf x prescale x psf_scale: its sums from the planes'
+        (y0, y1), (x0, x1) = psf_support(psf)   # (scale-free)
         self.psf_support_px = (y1 - y0 + 1, x1 - x0 + 1)
-        self.spectral_mean = float(np.sum(psf_n * psf_n))
-        self.l1_plane_weights = plane_weights(psf_n, self.p.l1_plane_power)
+        sq = np.array([np.sum(np.square(np.asarray(h, np.float64))) for h in psf])
+        self.spectral_mean = float((pre * self.psf_scale) ** 2 * np.sum(sq))
+        self.l1_plane_weights = plane_weights(None, self.p.l1_plane_power, norms=np.sqrt(sq))
         self.psf_scale *= self.psf_prescale  # the whole scale from the caller's PSF
         # buffers, plus the FFT libraries' scratch of the plans each part uses
         self.allocated_bytes = sum(part.device_bytes + part.row.partials.nbytes + part.out.nbytes

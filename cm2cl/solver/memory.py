@@ -73,9 +73,15 @@ def memory_estimate(nz, padded_shape, dtype, backend, scratch_per_plane=0, lean_
             "volumes_per_plane": int(real_volumes) * real_plane + spectra * spec_plane}
 
 
-def device_budget(rt, max_memory=None) -> int:
-    """Bytes the planner may use on ``rt``: ``max_memory`` (a cap, e.g. for tests) or 90% of its memory."""
-    cap = int(rt.caps.global_mem * BUDGET_FRACTION)
+def device_budget(rt, max_memory=None, reserve: int = 0) -> int:
+    """Bytes the planner may use on ``rt``: ``max_memory`` (a cap, e.g. for tests) or 90% of its memory.
+    A CPU device's buffers are host memory: its memory is the larger of the driver's figure and what
+    the host has available less ``reserve`` (what the host still needs beside the device's buffers,
+    e.g. the result); PoCL reports about a quarter of the RAM as global memory and allocates beyond it."""
+    mem = int(rt.caps.global_mem)
+    if getattr(rt.caps, "kind", None) == "CPU":
+        mem = max(mem, host_available_bytes() - int(reserve))
+    cap = int(mem * BUDGET_FRACTION)
     return min(cap, int(max_memory)) if max_memory else cap
 
 
@@ -101,9 +107,13 @@ def streamed_bytes_per_iteration(planes, padded_shape, dtype, backend, tv_iters,
     penalties change: 5V + S to make it), S out, then 2S in, V out; w split 3V in, V out; the first TV
     iteration 4V in, 3V + S out, each further one 3V + S in, 3V out; TV finish 6V + S in, 2V out (V: a
     real volume of the planes, S: their spectra; S also carries the TV prox's argument). ``relaxed``
-    (over-relaxation, alpha != 1): the first TV iteration also reads u, V more."""
+    (over-relaxation, alpha != 1): the first TV iteration also reads u, V more. ``tv_iters=None``: the
+    set without TV (cm2cl.solver.terms.fused), whose x step makes its rhs from s (V in) and which has no
+    TV steps: 6V + 4S."""
     est = memory_estimate(planes, padded_shape, dtype, backend)
     V, S = est["real_volume"], est["psf_spectra"]
+    if tv_iters is None:
+        return int(6 * V + 4 * S)
     return int(((1 if rhs_ready else 5) + 1 + 3 + 1 + 6 + 2 + 6 * tv_iters + 1 + (1 if relaxed else 0)) * V
                + (4 + tv_iters + 1) * S)
 
@@ -116,10 +126,12 @@ def iteration_bytes(nz, padded_shape, dtype, backend, tv_iters, lean=False, rela
     after the penalties change, are not counted). With cm2cl's FFT ("cl") the solve runs inside the
     IFFT's column pass, which then reads the PSF spectra too: 2S less (ClPlan.inverse_xstep). ``lean``:
     the x step transforms its rhs twice, V+S more. ``relaxed`` (over-relaxation): the first TV residual
-    also reads u, V more."""
+    also reads u, V more. ``tv_iters=None``: the set without TV, whose TV steps are one rhs_volume
+    from s (2V)."""
     est = memory_estimate(nz, padded_shape, dtype, backend)
     spectra = (5 if backend == "cl" else 7) + (1 if lean else 0)
-    real = 1 + 1 + 4 + 1 + 9 + 12 * tv_iters + (1 if lean else 0) + (1 if relaxed else 0)
+    tv = 2 if tv_iters is None else 9 + 12 * tv_iters + (1 if relaxed else 0)
+    real = 1 + 1 + 4 + 1 + tv + (1 if lean else 0)
     return int(real * est["real_volume"] + spectra * est["psf_spectra"])
 
 
@@ -185,7 +197,9 @@ def plan_layout(nz, padded_shape, dtype, backend, runtimes, *, max_memory=None, 
     terms = {"real_volumes": real_volumes, "nslots": nslots, "planes": planes}
     est = memory_estimate(1, padded_shape, dtype, backend, scratch_per_plane, **terms)
     per, fixed, vols = est["per_plane"], est["fixed"], est["volumes_per_plane"]
-    budgets = [device_budget(rt, max_memory) for rt in runtimes]
+    # beside a CPU device's buffers the host keeps the result (the padded x, gathered at the end)
+    result = nz * int(np.prod(padded_shape)) * np.dtype(dtype).itemsize
+    budgets = [device_budget(rt, max_memory, reserve=result) for rt in runtimes]
     keep = [(rt, r, bud) for rt, r, bud in zip(runtimes, _proportional_runs(nz, budgets), budgets) if r[1] > r[0]]
     runtimes, runs, budgets = [k[0] for k in keep], [k[1] for k in keep], [k[2] for k in keep]
     if stream is not True and lean is not True and all(fixed + (b - a) * per <= bud for (a, b), bud in zip(runs, budgets)):

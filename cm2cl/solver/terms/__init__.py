@@ -32,6 +32,8 @@ class GenericSet:
         self.kernels = tuple(dict.fromkeys(GenericSet.kernels + sum((t.kernels for t in self.terms), ())))
         self.planes = tuple(dict.fromkeys(sum((t.planes for t in self.terms), ())))
         self.start_volumes = ("x",) + tuple(t.volumes[0] for t in self.regs)
+        #: whether a TV term is among the regularisers
+        self.has_tv = any(isinstance(t, TV) for t in self.regs)
 
     def setup(self, s) -> None:
         for t in self.terms:
@@ -95,11 +97,12 @@ def data_term(background: str = "none", spacing_px=None) -> Term:
     raise ValueError(f"background: expected 'model' or 'none', got {background!r}")
 
 
-def default_terms(fused: bool = True, background: str = "none", spacing_px=None):
+def default_terms(fused: bool = True, background: str = "none", spacing_px=None, tv: bool = True):
     """The default objective {data, TV, l1 + non-negativity} with the data term of :func:`data_term`: the
-    fused set, or the same terms as a generic set."""
+    fused set, or the same terms as a generic set; ``tv=False``: the fused set without TV's state, for a
+    TV weight of 0 (:func:`has_tv`)."""
     data = data_term(background, spacing_px)
-    return DefaultSet(data) if fused else GenericSet(data, (TV(), L1()))
+    return DefaultSet(data, tv) if fused else GenericSet(data, (TV(), L1()) if tv else (L1(),))
 
 
 def terms_for(params):
@@ -107,7 +110,25 @@ def terms_for(params):
     if params.l1_reweight:
         return GenericSet(data_term(params.background, params.background_scale_px),
                           (TV(), ReweightedL1(params.l1_reweight, params.l1_reweight_eps)))
-    return default_terms(True, params.background, params.background_scale_px)
+    return default_terms(True, params.background, params.background_scale_px, tv=has_tv(params))
 
 
-__all__ = ["Term", "IdentityTerm", "LeastSquares", "LeastSquaresBackground", "data_term", "L1", "TV", "GenericSet", "DefaultSet", "default_terms", "terms_for", "ReweightedL1", "plane_weights"]
+def state_counts(terms) -> dict:
+    """What a solve with ``terms`` keeps, in the memory planner's terms (cm2cl.solver.memory.plan_layout):
+    its real volumes per voxel, its reduction slots (each reducing launch's sums once) and its padded
+    planes of its own."""
+    keys, nslots = set(), 0
+    for key, names in terms.sums:
+        if key not in keys:
+            keys.add(key)
+            nslots += len(names)
+    return {"real_volumes": len(terms.volumes), "nslots": nslots, "planes": len(terms.planes)}
+
+
+def has_tv(params) -> bool:
+    """Whether ``params`` can give TV a weight: not when it is 0, or left to a noise ratio of 0 (the
+    default), whatever the measurement."""
+    return not (params.tv == 0 or (params.tv is None and params.tv_noise_ratio == 0))
+
+
+__all__ = ["Term", "IdentityTerm", "LeastSquares", "LeastSquaresBackground", "data_term", "L1", "TV", "GenericSet", "DefaultSet", "default_terms", "terms_for", "has_tv", "state_counts", "ReweightedL1", "plane_weights"]

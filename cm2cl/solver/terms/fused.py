@@ -15,6 +15,11 @@ pz); w, rho and eta are derived exactly wherever a kernel needs them (kernels/sp
 * lean layout (:func:`cm2cl.solver.memory.plan_layout`): one slab of x spectra per part; the x step
   transforms each slab's rhs twice and the TV prox keeps z in g and its residual in that slab.
 
+Without TV (``tv=False``: the weight is 0 whatever the measurement, the default) the set keeps x, g and
+s only: u would equal x and p stay 0, so the u split is reported as the exact split u = x with a zero
+dual, and each x step makes its rhs mu_w w - rho from s (3 real volumes per voxel instead of 7, and no
+pass over u and p per iteration).
+
 The same iterates as :class:`cm2cl.solver.terms.GenericSet` of the same terms (a test compares them)."""
 
 from __future__ import annotations
@@ -44,8 +49,13 @@ class DefaultSet:
     kernels = (("splits.cl", "update_w"), ("splits.cl", "split_state"), ("tv.cl", "tv_finish"),
                ("tv.cl", "tv_eta"), ("xstep.cl", "rhs_volume"))
 
-    def __init__(self, data=None):
+    def __init__(self, data=None, tv: bool = True):
         self.data = data if data is not None else LeastSquares()
+        #: whether the set has TV (False: its weight is 0 for every measurement; x, g and s only)
+        self.has_tv = bool(tv)
+        if not self.has_tv:
+            self.volumes, self.start_volumes = ("x", "g", "s"), ("x", "s")
+            self.sums = DefaultSet.sums[:2]
         self.kernels = DefaultSet.kernels + tuple(k for k in self.data.kernels if k not in DefaultSet.kernels)
         self.planes = self.data.planes
         #: (l1, mu): the l1 weight and penalty s was made with; (0, 1) for a state set directly (s = w)
@@ -62,6 +72,8 @@ class DefaultSet:
         self.data.setup(s)
 
     def start(self, s, ctl) -> None:
+        if not self.has_tv and ctl.tv > 0:
+            raise ValueError(f"terms: a TV weight of {ctl.tv:g} for a set without TV")
         self.data.start(s, ctl)
         self.tv_split = ctl.tv   # p = 0: eta = 0
 
@@ -71,7 +83,7 @@ class DefaultSet:
 
     # ---- the x step's right-hand side ----------------------------------------------------------------
     def c(self, mu: dict) -> float:
-        return mu["u"] + mu["w"]
+        return mu["u"] + mu["w"] if self.has_tv else mu["w"]
 
     def rhs_ready(self, mu: dict) -> bool:
         """Whether g holds the rhs for these penalties (then the x step only transforms it)."""
@@ -80,12 +92,19 @@ class DefaultSet:
         return ready
 
     def rhs_reads(self, ready: bool) -> tuple:
-        return () if ready else ("u", "s", "px", "py", "pz")
+        return () if ready else ("u", "s", "px", "py", "pz") if self.has_tv else ("s",)
 
     def rhs(self, s, i, part, j, n, a, mu: dict) -> None:
-        """rhs_volume: t = mu_u u - eta + mu_w w - rho on slab j from the state (s, p)."""
+        """rhs_volume: t = mu_u u - eta + mu_w w - rho on slab j from the state (s, p); without TV
+        t = mu_w w - rho (mu_u = 0 and tv = 0: s stands in for u and p, whose values are not used)."""
         ny, nx = s.P
         l1_s, mu_s = self.l1_split
+        if not self.has_tv:
+            x = a["s"]
+            s.row_grid(part, "rhs_volume", t=a["g"], u=x, s=x, px=x, py=x, pz=x, pz_prev=x, has_prev=0,
+                       prev_planes=1, has_next=0, mu_u=0.0, mu_w=mu["w"], tv=0.0, l1_s=l1_s,
+                       l1w=self.weights.slab[i][j], mu_s=mu_s, aw=s.p.tv_axial_weight, planes=n, ny=ny, nx=nx)
+            return
         s.row_grid(part, "rhs_volume", t=a["g"], u=a["u"], s=a["s"], px=a["px"], py=a["py"], pz=a["pz"],
                    mu_u=mu["u"], mu_w=mu["w"], tv=self.tv_split, l1_s=l1_s, l1w=self.weights.slab[i][j], mu_s=mu_s,
                    aw=s.p.tv_axial_weight, planes=n, ny=ny, nx=nx, **s.walk.neighbours(i, j, j, a, "pz"))
@@ -95,6 +114,8 @@ class DefaultSet:
         mu = ctl.mu
         self.w_step(s, ctl.l1, mu["w"])
         self.data.update(s, ctl)
+        if not self.has_tv:   # the next x step makes its rhs from s
+            return
         tau = ctl.tv / mu["u"]
         zn, rn = ("g", "spec") if s.lean else ("spec", "g")   # where z and the TV residual go
         if tau > 0:
@@ -153,8 +174,11 @@ class DefaultSet:
 
     # ---- what the control reads --------------------------------------------------------------------
     def report(self, v: dict) -> dict:
+        # without TV the u split is u = x exactly, its dual 0: no primal residual, u's change is x's
+        u = (SplitStats(v["ru2"], v["su2"], v["x2"], v["u2"], v["eta2"]) if self.has_tv
+             else SplitStats(0.0, v["dx2"], v["x2"], v["x2"], 0.0))
         return {"dx2": v["dx2"], "x2": v["x2"],
-                "splits": {"v": self.data.stats(v), "u": SplitStats(v["ru2"], v["su2"], v["x2"], v["u2"], v["eta2"]),
+                "splits": {"v": self.data.stats(v), "u": u,
                            "w": SplitStats(v["rw2"], v["sw2"], v["x2"], v["w2"], v["rho2"])},
                 "objective": {**self.data.objective(v), "l1": v["l1"], "tv": v["tv"]}, "changes": self.data.changes()}
 
@@ -164,11 +188,13 @@ class DefaultSet:
     # ---- state readback ---------------------------------------------------------------------------
     def derived(self, s, name: str):
         """w, rho (from s) or eta (from p), computed on the device as the kernels that use them do."""
-        if name not in DERIVED:
+        if name not in DERIVED + (() if self.has_tv else ("u",)):
             return None
+        if not self.has_tv and name in ("u", "eta"):   # u = x, eta = 0 exactly
+            return s.walk.gather("x") if name == "u" else np.zeros((s.nz,) + s.P, s.dtype)
         (ny, nx), out = s.P, []
         l1_s, mu_s = self.l1_split
-        for i, part, j, n, a in s.walk.slabs(("s", "px", "py", "pz")):
+        for i, part, j, n, a in s.walk.slabs(("s", "px", "py", "pz") if self.has_tv else ("s",)):
             t = part.rt.zeros(a["s"].shape, s.dtype)
             if name == "eta":
                 s.row_grid(part, "tv_eta", eta=t, px=a["px"], py=a["py"], pz=a["pz"], tv=self.tv_split,
