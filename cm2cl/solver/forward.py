@@ -82,12 +82,16 @@ def fast_grid(need, backend: str) -> tuple[int, int]:
 def psf_support(psf, fraction: float = 1 - 1e-6) -> tuple[tuple[int, int], tuple[int, int]]:
     """((y0, y1), (x0, x1)): per lateral axis, the smallest index range holding ``fraction`` of the PSF
     stack's light (all planes), the rest split between the two tails."""
-    h = np.abs(np.asarray(psf, np.float64))
-    h = h[None] if h.ndim == 2 else h
+    h = psf[None] if np.ndim(psf) == 2 else psf
+    # the profiles plane by plane in float64 (no copy of the stack: a full frame's is gigabytes)
+    profs = [np.zeros(h.shape[1]), np.zeros(h.shape[2])]
+    for plane in h:
+        a = np.abs(np.asarray(plane, np.float64))
+        profs[0] += a.sum(axis=1)
+        profs[1] += a.sum(axis=0)
     tail = (1.0 - fraction) / 2.0
     out = []
-    for axis in (1, 2):
-        prof = h.sum(axis=(0, 3 - axis))
+    for prof in profs:
         nz = np.flatnonzero(prof)
         if nz.size == 0:
             out.append((0, prof.size - 1))
@@ -107,7 +111,7 @@ def support_padding(psf, backend: str, fraction: float = 1 - 1e-6):
     (:func:`psf_support`): circular convolution on that grid equals the linear one on the sensor for a PSF
     zero outside its support, so the PSF is truncated there (the light dropped is ``info['light_dropped']``,
     at most 1 - fraction). ``info`` also has the support K and the voxels saved against 2M - 1."""
-    h = np.asarray(psf, np.float64)
+    h = np.asarray(psf)   # in its own dtype: a copy of a full frame's stack in float64 is gigabytes
     h = h[None] if h.ndim == 2 else h
     M = h.shape[1:]
     (y0, y1), (x0, x1) = psf_support(h, fraction)
@@ -119,7 +123,7 @@ def support_padding(psf, backend: str, fraction: float = 1 - 1e-6):
     full = choose_padded_shape(M, backend)
     info = {"support_px": list(K), "padded_shape": list(P), "full_padded_shape": list(full),
             "voxel_fraction": float(np.prod(P) / np.prod(full)),
-            "light_dropped": float(1.0 - t.sum() / max(h.sum(), 1e-300))}
+            "light_dropped": float(1.0 - t.sum(dtype=np.float64) / max(h.sum(dtype=np.float64), 1e-300))}
     return t, P, info
 
 
