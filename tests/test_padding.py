@@ -32,6 +32,19 @@ def test_support_is_measured_and_the_grid_shrinks():
     assert info["voxel_fraction"] < 0.75 and tuple(info["full_padded_shape"]) == (64, 80)
 
 
+def test_support_is_measured_in_float64_without_copying_a_float32_stack():
+    """A full frame's stack is gigabytes: the support is found from per-plane float64 profiles (the same
+    as from the float64 stack), the stack is copied only where something is truncated, and in its dtype."""
+    rng = np.random.default_rng(4)
+    psf = _compact_psf(2).astype(np.float32)
+    t, P, info = support_padding(psf, "cl")
+    assert t.dtype == np.float32 and t is not psf
+    assert psf_support(psf) == psf_support(psf.astype(np.float64))
+    wide = rng.random((2,) + M).astype(np.float32)   # light everywhere: the support is the whole sensor
+    t, P, info = support_padding(wide, "cl")
+    assert t is wide and info["light_dropped"] == 0 and info["support_px"] == list(M)
+
+
 def test_no_wrap_around_into_the_sensor(rt):
     """The device forward model on the support grid equals the float64 linear convolution (2M - 1 grid)
     on the sensor, for an object filling everything that can reach the sensor."""

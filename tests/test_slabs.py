@@ -290,3 +290,23 @@ def test_pinned_host_copies_stream_the_same(rt, monkeypatch):
     assert len(pinned.parts[0]._pinned) == (3 + 2) * 4    # every volume's four slabs (3 real without TV, 2 complex)
     b = pinned.solve(y)
     assert np.array_equal(a.volume, b.volume)
+
+
+def test_a_cpu_devices_budget_is_the_hosts_available_memory(rt, monkeypatch):
+    """A CPU device's buffers are host memory, whatever its driver reports (PoCL: a quarter of the RAM on
+    one machine, 94% on another): the planner's budget is 90% of what the host has available less the
+    result it will hold and the runtime's share; a GPU's is 90% of its own memory; a cap lowers either."""
+    import cm2cl.device as device
+    from cm2cl.solver import memory
+
+    monkeypatch.setattr(memory, "host_available_bytes", lambda: 20 * 2**30)
+    cpu = device.Capabilities(**{**rt.caps.__dict__, "kind": "CPU", "global_mem": 6 * 2**30})
+    monkeypatch.setattr(rt, "caps", cpu)
+    want = int(0.9 * (20 * 2**30 - 3 * 2**30 - memory.CPU_RUNTIME_BYTES))
+    assert memory.device_budget(rt, reserve=3 * 2**30) == want
+    assert memory.device_budget(rt, max_memory=2**30, reserve=3 * 2**30) == 2**30
+    monkeypatch.setattr(memory, "host_available_bytes", lambda: 2**29)   # less than the reserve: nothing
+    assert memory.device_budget(rt, reserve=3 * 2**30) == 0
+    gpu = device.Capabilities(**{**rt.caps.__dict__, "kind": "GPU", "global_mem": 6 * 2**30})
+    monkeypatch.setattr(rt, "caps", gpu)
+    assert memory.device_budget(rt, reserve=3 * 2**30) == int(0.9 * 6 * 2**30)

@@ -26,6 +26,7 @@ from cm2cl.solver.admm import ADMMSolver  # noqa: E402
 from cm2cl.device import get_runtime  # noqa: E402
 from cm2cl.solver.memory import iteration_bytes  # noqa: E402
 from cm2cl.solver.params import ADMMParams  # noqa: E402
+from cm2cl.solver.terms import default_terms  # noqa: E402
 
 
 #: iterations before the timed ones: the adaptive penalty policy may change mu on each of the first ten
@@ -89,12 +90,16 @@ def main(argv=None):
                 numpy_s[grid] = per_iteration(reference.admm(y, psf, p, padded_shape=grid, dtype=np.float32,
                                                              workers=-1), SKIP)
             return numpy_s[grid]
-        # each backend in the layout a problem that fits gets, and cm2cl's FFT in the lean layout too
-        for backend, lean in [(b, False) for b in fft.available_backends()] + [("cl", True)]:
-            s = ADMMSolver(psf, p, backend=backend, lean=lean)
+        # each backend in the layout a problem that fits gets, cm2cl's FFT in the lean layout too, and the
+        # default (TV weight 0) with the state of the set with TV kept, as before the set without TV
+        configs = [(b, False, False) for b in fft.available_backends()] + [("cl", True, False), ("cl", False, True)]
+        for backend, lean, tv_state in configs:
+            terms = default_terms(True, p.background, p.background_scale_px, tv=True) if tv_state else None
+            s = ADMMSolver(psf, p, backend=backend, lean=lean, terms=terms)
             s.solve(y)  # warm-up: kernel builds, FFT plans
-            nbytes = iteration_bytes(nz, s.P, np.float32, backend, p.tv_iters if s.terms.has_tv else None, s.lean,
-                                     p.relaxation != 1)
+            # the TV set at weight 0 runs no TV iterations, only its finish pass
+            tv_iters = (0 if tv_state else p.tv_iters) if s.terms.has_tv else None
+            nbytes = iteration_bytes(nz, s.P, np.float32, backend, tv_iters, s.lean, p.relaxation != 1)
             runs = []
             for _ in range(RUNS):
                 bw = copy_bandwidth(rt)
@@ -110,7 +115,8 @@ def main(argv=None):
             spec_plane = s.parts[0].spec_plane
             target = 7 * V + nz * int(np.prod(spec_plane)) * 2 * 4   # issue 10: <= 7 volumes + PSF spectra
             floor = nbytes / bw
-            rows.append([f"{my} x {mx} x {nz}", backend + (" (lean)" if s.lean else ""), f"{s.P[0]} x {s.P[1]}", f"{dev:.3f}", f"{npy:.3f}",
+            label = backend + (" (lean)" if s.lean else "") + (" (TV state kept)" if tv_state else "")
+            rows.append([f"{my} x {mx} x {nz}", label, f"{s.P[0]} x {s.P[1]}", f"{dev:.3f}", f"{npy:.3f}",
                          f"{npy / dev:.2f}", f"{best:.3f} ({numpy_grid[0]} x {numpy_grid[1]})", f"{best / dev:.2f}", f"{s.allocated_bytes / 2**20:.0f}", f"{target / 2**20:.0f}",
                          f"{floor * 1e3:.1f}", f"{ratio:.1f}", f"{fft_t * 1e3:.0f} ({fft_t / dev:.0%})"])
             print(" | ".join(rows[-1]), flush=True)
@@ -120,7 +126,7 @@ def main(argv=None):
             "FFTs ms/iter (share)"]
     text = (f"Device: **{rt.caps.name}** ({rt.caps.implementation}; FFT backends {', '.join(fft.available_backends())}), "
             f"{os.cpu_count()} host cores; float32, "
-            f"tv_iters={p.tv_iters}; median time between iterations {SKIP + 1}-{SKIP + a.iters} (past the "
+            f"the default parameters (TV weight 0: the set without TV); median time between iterations {SKIP + 1}-{SKIP + a.iters} (past the "
             f"adaptive penalties' first {SKIP} iterations, where they may change on each) after a warm-up run, "
             f"the median of {RUNS} device solves (numpy: one); each solve right after a copy kernel's rate "
             f"({min(bws) / 1e9:.1f}-{max(bws) / 1e9:.1f} GB/s in this run): 'bandwidth floor ms' at the median "
@@ -128,7 +134,7 @@ def main(argv=None):
             f"scratch): the depth planes' and the plane buffers' (v, xi, hx, the rhs plane, halos, R, S: a fixed cost of 12-15 "
             f"planes); 'target MiB' the depth planes' alone (issue 10: <= 7 real volumes + the PSF spectra per plane, what the "
             f"lean layout allocates per plane; section 'The lean layout'); '(lean)': the lean layout (`lean=True`: one slab of x spectra, one more forward FFT per "
-            f"iteration, counted in its floor), which the planner takes where the whole state does not fit. numpy = `cm2cl.reference.admm(dtype=float32, workers=-1)`, on the device's padded grid and "
+            f"iteration, counted in its floor), which the planner takes where the whole state does not fit; '(TV state kept)': the default's TV weight of 0 solved by the set with TV's state (7 real volumes, u and p passed over each iteration), as before the set without TV (3 real volumes; the same iterates). numpy = `cm2cl.reference.admm(dtype=float32, workers=-1)`, on the device's padded grid and "
             f"on its own best grid (`scipy.fft.next_fast_len` of twice the sensor, per axis). "
             f"`python tools/bench_admm.py`\n\n" + markdown_table(head, rows))
     print(text)

@@ -29,6 +29,15 @@ def slab_bounds(nz: int, plane_bytes: int, max_alloc: int, max_planes: int | Non
     return [(z, min(z + per, nz)) for z in range(0, nz, per)]
 
 
+def upload(a, host: np.ndarray):
+    """Copy ``host`` into device array ``a`` and keep no reference to it: pyopencl keeps each copy's event,
+    which holds its host array, in the array's event list (up to 12 of them: 0.8 GiB of a full frame's
+    padded PSF planes when they were uploaded one by one)."""
+    a.set(host)
+    a.finish()
+    return a
+
+
 def fill(rt, a, value=0):
     """Set every element of the contiguous device array ``a`` to ``value`` (clEnqueueFillBuffer,
     no kernel); returns ``a``."""
@@ -122,11 +131,12 @@ class Volume:
     def set(self, host: np.ndarray):
         host = np.ascontiguousarray(host, dtype=self.dtype)
         for (z0, z1), s in self:
-            s.set(host[z0:z1])
+            upload(s, host[z0:z1])
         return self
 
-    def get(self) -> np.ndarray:
-        out = np.empty(self.shape, self.dtype)
+    def get(self, out=None) -> np.ndarray:
+        """The volume on the host, into ``out`` (its shape, this dtype, C-contiguous) where given."""
+        out = np.empty(self.shape, self.dtype) if out is None else out
         for (z0, z1), s in self:
             s.get(ary=out[z0:z1])
         return out

@@ -18,7 +18,7 @@ import numpy as np
 from .. import validate
 from ..device.fft import complex_dtype, get_plan, resolve_backend
 from ..device.runtime import get_runtime
-from ..device.volume import fill, scale
+from ..device.volume import fill, scale, upload
 from ..errors import DeviceError, InputError
 from . import xstep
 from .control import Control, ProblemScale
@@ -180,7 +180,7 @@ class ADMMSolver:
                 z = part.z0 + part.bounds[j][0]   # one plane on the padded grid at a time in host memory
                 for k in range(n):
                     h = (np.asarray(psf[z + k], np.float64) * pre).astype(self.dtype)
-                    a["g"][k:k + 1].set(centered_psf(h[None], P))
+                    upload(a["g"][k:k + 1], centered_psf(h[None], P))
                 part.plan(n, self.backend).forward(a["g"], a["hs"])
                 part.kernels("spectral_power", (nf,), hn2=hn2, H=a["hs"], planes=n, nfreq=nf, first=j == 0)
         if len(self.parts) > 1:
@@ -360,7 +360,8 @@ class ADMMSolver:
                  ", ".join(part.rt.caps.name for part in self.parts), len(ctl.log),
                  "converged" if ctl.converged else "stopped at max_iter",
                  last["primal_rel"], last["dual_rel"], last["rel_change"], last["seconds"])
-        vol = np.maximum(self.walk.gather("x"), 0, dtype=self.dtype)
+        vol = self.walk.gather("x")
+        np.maximum(vol, 0, out=vol)   # in place: the result is the one host copy of the volume
         self._check_range(self.psf_scale / y_scale, float(vol.max()), float(vol.max()))
         for plane in vol:   # scaled in float64, rounded to the solve's dtype; in place, a plane at a time
             plane[...] = plane.astype(np.float64) * (self.psf_scale / y_scale)

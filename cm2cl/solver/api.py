@@ -55,8 +55,8 @@ _DOC = """Reconstruct a 3D volume from one CM2 measurement (paper Eq. 4) on an O
         accelerators ('auto'), always (True), or never (False: one set, larger slabs, copies and work in
         turn; 'auto' on CPUs, where double buffering measured no faster).
     lean : 'auto' (default), True or False
-        Keep the planes resident with one slab of x spectra instead of a volume of them (7 real volumes
-        and the PSF spectra per plane, for one more forward FFT per iteration): where the whole state
+        Keep the planes resident with one slab of x spectra instead of a volume of them (7 real volumes,
+        3 without TV, and the PSF spectra per plane, for one more forward FFT per iteration): where the whole state
         does not fit ('auto'), always (True), or never (False). The iterates are the same.
     camera : None, 'auto', dict or str, optional
         The camera's noise model, for a data term that weighs each pixel by the inverse of its photon and

@@ -118,8 +118,11 @@ def support_padding(psf, backend: str, fraction: float = 1 - 1e-6):
     K = (y1 - y0 + 1, x1 - x0 + 1)
     backend = fft.resolve_backend(backend)
     P = fast_grid([min(m + k - 1, 2 * m - 1) for m, k in zip(M, K)], backend)
-    t = np.zeros_like(h)
-    t[:, y0:y1 + 1, x0:x1 + 1] = h[:, y0:y1 + 1, x0:x1 + 1]
+    if (y0, y1, x0, x1) == (0, M[0] - 1, 0, M[1] - 1):
+        t = h   # the support is the whole sensor: nothing to truncate, no copy
+    else:
+        t = np.zeros_like(h)
+        t[:, y0:y1 + 1, x0:x1 + 1] = h[:, y0:y1 + 1, x0:x1 + 1]
     full = choose_padded_shape(M, backend)
     info = {"support_px": list(K), "padded_shape": list(P), "full_padded_shape": list(full),
             "voxel_fraction": float(np.prod(P) / np.prod(full)),

@@ -16,6 +16,10 @@ __all__ = ["memory_estimate", "check_fits", "host_available_bytes", "plan_layout
 
 #: fraction of a device's global memory the planner uses by default (drivers and FFT scratch need some)
 BUDGET_FRACTION = 0.9
+#: host memory a CPU device's runtime takes beside the buffers once the solver's kernels are built, with
+#: a margin: 0.34 GiB of anonymous RSS beyond the buffers and the inputs with 16 planes of a 3360 x 4000
+#: grid (PoCL 3.1; tools/bench_fullframe.py's full frame peaked at 20.2 GiB with this reserve)
+CPU_RUNTIME_BYTES = 2 ** 30
 
 
 def host_available_bytes() -> int:
@@ -75,12 +79,13 @@ def memory_estimate(nz, padded_shape, dtype, backend, scratch_per_plane=0, lean_
 
 def device_budget(rt, max_memory=None, reserve: int = 0) -> int:
     """Bytes the planner may use on ``rt``: ``max_memory`` (a cap, e.g. for tests) or 90% of its memory.
-    A CPU device's buffers are host memory: its memory is the larger of the driver's figure and what
-    the host has available less ``reserve`` (what the host still needs beside the device's buffers,
-    e.g. the result); PoCL reports about a quarter of the RAM as global memory and allocates beyond it."""
+    A CPU device's buffers are host memory: its memory is what the host has available now less
+    ``reserve`` (what the host still needs beside the device's buffers, e.g. the result) and less what
+    the runtime itself takes (CPU_RUNTIME_BYTES), whatever the driver reports (PoCL: a quarter of the RAM
+    on one machine, allocating beyond it; 94% of it on another, which the inputs already use part of)."""
     mem = int(rt.caps.global_mem)
     if getattr(rt.caps, "kind", None) == "CPU":
-        mem = max(mem, host_available_bytes() - int(reserve))
+        mem = max(host_available_bytes() - int(reserve) - CPU_RUNTIME_BYTES, 0)
     cap = int(mem * BUDGET_FRACTION)
     return min(cap, int(max_memory)) if max_memory else cap
 

@@ -31,7 +31,7 @@ from ..device.fft import get_plan
 #: argument z as reals while the x spectra are not needed (the lean state: cm2cl/solver/admm.py)
 REAL = ("x", "g", "s", "u", "px", "py", "pz")
 COMPLEX = ("spec", "hs")
-#: the volumes a lean part keeps one slab of (device memory for 7 real volumes and the PSF spectra per
+#: the volumes a lean part keeps one slab of (device memory for 7 real volumes, 3 without TV, and the PSF spectra per
 #: plane): the x step transforms each slab's rhs twice, once for the spectral sum and once for the solve,
 #: and the TV prox keeps z in g and its residual in this slab (cm2cl/solver/admm.py)
 LEAN_SCRATCH = ("spec",)
@@ -276,10 +276,16 @@ class Part:
         else:
             self.vol[name].fill(value)
 
-    def get(self, name: str) -> np.ndarray:
+    def plane_of(self, name: str):
+        """(plane shape, dtype) of volume ``name``."""
+        a = self.host[name][0] if self.streamed else self.vol[name].slabs[0]
+        return tuple(a.shape[1:]), a.dtype
+
+    def get(self, name: str, out=None) -> np.ndarray:
+        """Volume ``name`` of this part's planes on the host, into ``out`` where given (no other copy)."""
         if self.streamed:
-            return np.concatenate(self.host[name], axis=0)
-        return self.vol[name].get()
+            return np.concatenate(self.host[name], axis=0, out=out)
+        return self.vol[name].get(out=out)
 
     def swap(self, a: str, b: str):
         """Exchange two volumes' roles (no copy)."""

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..device.volume import fill
+from ..device.volume import fill, upload
 
 
 class Walk:
@@ -71,13 +71,20 @@ class Walk:
                     part.fill(n, value)
 
     def gather(self, name) -> np.ndarray:
-        return np.concatenate([part.get(name) for part in self.parts], axis=0)
+        """Volume ``name`` of all parts in one host array, each part read into its planes (one copy: a
+        full frame's volume is gigabytes)."""
+        first = self.parts[0]
+        plane, dtype = first.plane_of(name)
+        out = np.empty((self.parts[-1].z1 - first.z0,) + plane, dtype)
+        for part in self.parts:
+            part.get(name, out=out[part.z0 - first.z0:part.z1 - first.z0])
+        return out
 
     def scatter(self, name, value):
         for part in self.parts:
             for j, n, a in part.slabs(writes=(name,)):
                 z = part.z0 + part.bounds[j][0]
-                a[name].set(np.ascontiguousarray(value[z:z + n], a[name].dtype))
+                upload(a[name], np.ascontiguousarray(value[z:z + n], a[name].dtype))
 
     @property
     def moved_bytes(self) -> int:
