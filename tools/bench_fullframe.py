@@ -189,7 +189,13 @@ def main():
     text = (f"# The full-resolution frame\n\nMade by `python tools/bench_fullframe.py --planes {args.planes} "
             f"--iters {args.iters} --padding {args.padding}` ({wall / 60:.1f} min) on {install_path()}, "
             f"FFT backend {r['backend']}, float32; host {os.cpu_count()} cores, {ram / GIB:.1f} GiB RAM, "
-            f"{host_available_bytes() / GIB:.1f} GiB available after the run.\n\n{table}\n")
+            f"{host_available_bytes() / GIB:.1f} GiB available after the run.\n\n{table}\n\n"
+            "The solve is `cm2cl.reconstruct(y, psf, padding='support')` at the default parameters (TV weight 0: "
+            "the fused set without TV, 3 real volumes per voxel; docs/design.md section 4), the planner's "
+            "budget on a CPU device the host's available memory less the result and the runtime "
+            "(`cm2cl.solver.memory.device_budget`). Peak RSS counts the inputs the caller holds (the float32 PSF "
+            "stack, 1.2 GiB, and its copy truncated to the support) and the result read back (one volume on "
+            "the padded grid). The projection assumes each iteration costs what the measured ones did.\n")
     print(text)
     args.out.write_text(text)
 
