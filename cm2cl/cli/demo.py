@@ -97,9 +97,12 @@ def _simulate(scene, seed, device, say):
 def _reconstruct(sim, params, device, say):
     from ..solver import reconstruct
 
-    say(f"  reconstructing (ADMM at the defaults, up to {params['max_iter']} iterations) ...", flush=True)
+    say(f"  reconstructing (ADMM at the defaults, up to {params['max_iter']} iterations, padded to the PSF's "
+        "support) ...", flush=True)
     t = time.perf_counter()
-    rec = reconstruct(sim.measurement, sim.psf, device=device,
+    # padding='support' (the linear convolution exactly, for a PSF whose light lies within its support:
+    # the demo's drops none) on 0.69 of the 2M - 1 grid's voxels: 18.3 -> 14.9 s on 2 cores, the same beads
+    rec = reconstruct(sim.measurement, sim.psf, device=device, padding="support",
                       voxel_size_um=sim.voxel_size_um, depths_um=sim.depths_um, **params)
     t_rec = time.perf_counter() - t
     conv = ("converged: relative residuals and change below "
