@@ -227,6 +227,12 @@ def test_set_without_tv_gives_the_iterates_of_a_tv_weight_of_zero(rt, penalty):
             np.testing.assert_array_equal(s.get_volume("u"), s.get_volume("x"))
             assert not np.any(s.get_volume("eta"))
         out.append(rec.volume_padded)
+    # streamed from host memory in slabs of 2 planes and in the lean layout: the same iterates
+    for layout in (dict(stream=True, max_slab_planes=2), dict(lean=True, max_slab_planes=1)):
+        s = ADMMSolver(psf, ADMMParams(**kw), dtype=dtype, backend="cl", padded_shape=(64, 80), **layout)
+        assert not s.terms.has_tv
+        other = s.solve(y).volume_padded
+        assert np.linalg.norm(other - out[0]) / np.linalg.norm(out[0]) < 10 * same, layout
     r0 = ref.admm(y, psf, padded_shape=(64, 80), **kw)
     assert np.linalg.norm(out[0] - out[1]) / np.linalg.norm(out[1]) < 10 * same
     assert np.linalg.norm(out[0] - r0.volume_padded) / np.linalg.norm(r0.volume_padded) < tol

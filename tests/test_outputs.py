@@ -483,6 +483,8 @@ def test_inputs_are_checked_from_their_headers_before_decoding(rt, tmp_path, cap
     assert "expected a 2D image, got shape (2, 6000, 3000)" in capsys.readouterr().err
     monkeypatch.setattr("cm2cl.solver.memory.host_available_bytes", lambda: 1000)
     assert main(["reconstruct", str(meas), "--psf", str(psf), "-o", str(out), "--quiet"]) == 2
+    # a CPU device's memory is the host's: the planner refuses first, naming host memory (a GPU: the
+    # host check after it)
     assert "of host memory" in capsys.readouterr().err
     assert decoded == [] and not out.exists()
     monkeypatch.setattr("cm2cl.solver.memory.host_available_bytes", lambda: 1 << 40)

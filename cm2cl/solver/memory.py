@@ -90,6 +90,11 @@ def device_budget(rt, max_memory=None, reserve: int = 0) -> int:
     return min(cap, int(max_memory)) if max_memory else cap
 
 
+def _of_host(rt) -> str:
+    """' of host memory' for a CPU device, whose buffers are the host's (device_budget), else ''."""
+    return " of host memory" if getattr(rt.caps, "kind", None) == "CPU" else ""
+
+
 def check_fits(rt, nz, padded_shape, dtype, backend, max_memory=None):
     est = memory_estimate(nz, padded_shape, dtype, backend)
     budget = device_budget(rt, max_memory)
@@ -224,7 +229,8 @@ def plan_layout(nz, padded_shape, dtype, backend, runtimes, *, max_memory=None, 
         raise DeviceError(
             f"problem too large to keep on the device{'s' if len(runtimes) > 1 else ''}: {nz} planes on a "
             f"{padded_shape[0]} x {padded_shape[1]} padded grid need {need / 2**30:.2f} GiB per device, "
-            f"{min(budgets) / 2**30:.2f} GiB available; stream depth slabs from host memory instead")
+            f"{min(budgets) / 2**30:.2f} GiB available{_of_host(runtimes[0])}; stream depth slabs from host memory "
+            "instead")
     out = []
     for rt, (a, b), bud in zip(runtimes, runs, budgets):
         slab = (bud - fixed) // per
@@ -232,7 +238,8 @@ def plan_layout(nz, padded_shape, dtype, backend, runtimes, *, max_memory=None, 
             raise DeviceError(
                 f"problem too large even streamed: one depth plane of a {padded_shape[0]} x {padded_shape[1]} "
                 f"padded grid needs {(fixed + per) / 2**20:.2f} MiB on device '{rt.caps.name}', "
-                f"{bud / 2**20:.2f} MiB available (bin the measurement, use support padding or lateral tiles)")
+                f"{bud / 2**20:.2f} MiB available{_of_host(rt)} (bin the measurement, use support padding or "
+                "lateral tiles)")
         slab = int(min(slab, b - a, max_slab_planes or slab))
         double = (bud - fixed) // (per + vols)   # planes per slab with a second set of slab buffers
         dbl = overlap is True or (overlap == "auto" and rt.caps.kind != "CPU")
