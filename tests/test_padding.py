@@ -39,7 +39,9 @@ def test_support_is_measured_in_float64_without_copying_a_float32_stack():
     psf = _compact_psf(2).astype(np.float32)
     t, P, info = support_padding(psf, "cl")
     assert t.dtype == np.float32 and t is not psf
-    assert psf_support(psf) == psf_support(psf.astype(np.float64))
+    # all the light within the support: the first and last lit rows and columns of the whole stack
+    rows, cols = (np.flatnonzero(np.abs(psf.astype(np.float64)).sum(axis=(0, a))) for a in (2, 1))
+    assert psf_support(psf, 1.0) == ((rows[0], rows[-1]), (cols[0], cols[-1]))
     wide = rng.random((2,) + M).astype(np.float32)   # light everywhere: the support is the whole sensor
     t, P, info = support_padding(wide, "cl")
     assert t is wide and info["light_dropped"] == 0 and info["support_px"] == list(M)

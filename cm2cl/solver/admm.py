@@ -198,7 +198,7 @@ class ADMMSolver:
         self.psf_support_px = (y1 - y0 + 1, x1 - x0 + 1)
         sq = np.array([np.sum(np.square(np.asarray(h, np.float64))) for h in psf])
         self.spectral_mean = float((pre * self.psf_scale) ** 2 * np.sum(sq))
-        self.l1_plane_weights = plane_weights(None, self.p.l1_plane_power, norms=np.sqrt(sq))
+        self.l1_plane_weights = plane_weights(np.sqrt(sq), self.p.l1_plane_power)
         self.psf_scale *= self.psf_prescale  # the whole scale from the caller's PSF
         # buffers, plus the FFT libraries' scratch of the plans each part uses
         self.allocated_bytes = sum(part.device_bytes + part.row.partials.nbytes + part.out.nbytes

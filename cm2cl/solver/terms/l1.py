@@ -9,11 +9,9 @@ from ..control import SplitStats
 from .base import IdentityTerm
 
 
-def plane_weights(psf_n, power: float, norms=None) -> np.ndarray:
-    """Each plane's weight in the l1 term: ||h_i||^power / mean_j ||h_j||^power (ones for power 0); the
-    planes' norms ``norms`` when given (any common scale), else those of ``psf_n``."""
-    if norms is None:
-        norms = np.sqrt(np.sum(np.asarray(psf_n, np.float64).reshape(psf_n.shape[0], -1) ** 2, axis=1))
+def plane_weights(norms, power: float) -> np.ndarray:
+    """Each plane's weight in the l1 term: ||h_i||^power / mean_j ||h_j||^power (ones for power 0), from
+    the planes' norms ``norms`` (any common scale)."""
     c = np.asarray(norms, np.float64) ** float(power)
     return c / np.mean(c)
 
