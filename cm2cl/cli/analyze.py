@@ -14,6 +14,11 @@ writing a table, a record and a figure into one output folder (published whole).
 - ``cm2cl analyze depth-range VOL.ome.tif -o OUT/``: the reconstructed depth range (Fig. 5B): the particles'
   centres in each 800 x 800 um patch, max z - min z plus one particle's axial elongation, mean and standard
   deviation over the patches: ``depth_range.csv``, ``depth_range.png`` (the map), ``analysis.json``.
+- ``cm2cl analyze pcc-map GRID.tif -o OUT/ --step-mm 0.2``: the lateral shift variance (Fig. 2C, S4C): a
+  PSF per position of a lateral scan at one depth, each registered onto the on-axis one and compared by the
+  PCC, over the whole sensor and over the central lenslet's focus; the foci each PSF holds give the regions
+  (central 3x3, outer 2x3 / 3x2, corner 2x2): ``pcc_map.csv``, ``pcc_map.png`` (both maps with the regions'
+  boundaries), ``analysis.json`` (mean PCC per region, the diameter where the central lenslet's PCC > 0.7).
 - ``cm2cl analyze sbr MEAS.tif -o OUT/``: the local signal-to-background ratio of a raw measurement on
   500 x 500 um patches (Fig. 5B), particle pixels found per patch (5 robust sigmas above its median):
   ``sbr.csv``, ``sbr.png`` (the map), ``analysis.json``."""
@@ -34,7 +39,7 @@ RECORD = "analysis.json"
 
 
 def register(sub):
-    a = sub.add_parser("analyze", help="characterise a PSF stack (pcc, mtf), a reconstruction (particles, depth-range) or a raw "
+    a = sub.add_parser("analyze", help="characterise a PSF stack (pcc, mtf), a lateral PSF scan (pcc-map), a reconstruction (particles, depth-range) or a raw "
                                        "frame (sbr)",
                        description=__doc__)
     kinds = a.add_subparsers(dest="kind", metavar="KIND", required=True)
@@ -45,6 +50,19 @@ def register(sub):
     p.add_argument("--ref-z", type=float, default=None, metavar="UM",
                    help="depth of the reference plane (default: the sharpest plane)")
     p.add_argument("--level", type=float, default=0.8, help="PCC level of the widths (default 0.8, the paper's)")
+    m = kinds.add_parser("pcc-map", help="lateral PCC map of a lateral PSF scan (Fig. 2C) and of its central "
+                                         "lenslet's focus (Fig. S4C), by view region")
+    m.add_argument("grid", help="the scan: a (ny, nx, My, Mx) TIFF, or (n, My, Mx) pages in row-major grid order "
+                                "with --grid (read from disk as needed, not into memory)")
+    m.add_argument("-o", "--output", required=True, help="output folder")
+    m.add_argument("--grid", dest="grid_shape", default=None, metavar="NY,NX",
+                   help="the scan's rows and columns of positions (default: the file's own 4D shape or record)")
+    m.add_argument("--step-mm", default=None, metavar="S[,SX]",
+                   help="the scan's step in mm (one value, or the y and x steps); positions are centred on the "
+                        "grid's middle (default: the positions the file records, else grid indices)")
+    m.add_argument("--ref", default=None, metavar="I,J",
+                   help="grid row and column of the on-axis PSF (default: the position nearest 0, 0)")
+    m.add_argument("--no-central", action="store_true", help="skip the central lenslet's map")
     t = kinds.add_parser("mtf", help="3D MTF of an axial PSF stack: lateral and axial bandwidths and the 3D SBP")
     t.add_argument("psf", help="the axial PSF stack (OME-TIFF with its depths and object-space voxel size)")
     t.add_argument("-o", "--output", required=True, help="output folder")
@@ -88,7 +106,7 @@ def register(sub):
     g.add_argument("--patch-px", type=int, default=None, help="patch side in pixels instead")
     r.add_argument("--sigmas", type=float, default=5.0,
                    help="particle pixels lie this many robust sigmas above their patch's median (default 5)")
-    for s in (p, t, q, d, r):
+    for s in (p, m, t, q, d, r):
         s.set_defaults(func=command)
     return a
 
@@ -97,13 +115,18 @@ def command(args) -> int:
     from .. import io
     from ..io.staging import StagedOutput
 
-    src = {"pcc": "psf", "mtf": "psf", "particles": "volume", "depth-range": "volume",
+    src = {"pcc": "psf", "pcc-map": "grid", "mtf": "psf", "particles": "volume", "depth-range": "volume",
            "sbr": "measurement"}[args.kind]
-    data, meta = io.read_tiff(getattr(args, src))
-    want = 2 if args.kind == "sbr" else 3
-    if data.ndim != want:
-        raise InputError(f"'{getattr(args, src)}': expected a {want}D {'image' if want == 2 else 'stack'}, got "
-                         f"shape {data.shape}")
+    data, meta = io.read_tiff(getattr(args, src), memmap=args.kind == "pcc-map")
+    want = {"sbr": (2,), "pcc-map": (3, 4)}.get(args.kind, (3,))
+    if data.ndim not in want:
+        raise InputError(f"'{getattr(args, src)}': expected a {' or '.join(f'{n}D' for n in want)} "
+                         f"{'image' if want == (2,) else 'stack'}, got shape {data.shape}")
+    if args.kind == "pcc-map":
+        grid, xs, ys, ref, unit = _lateral_grid(args, data, meta)
+        with StagedOutput(args.output, RECORD, what="--output") as stage:
+            _publish(stage, _pcc_map(args, grid, xs, ys, ref, unit))
+        return 0
     if args.kind == "sbr":
         result = _sbr(args, data, meta)
     elif args.kind == "pcc":
@@ -117,12 +140,18 @@ def command(args) -> int:
             raise InputError(f"--threshold: {args.threshold} is not between 0 and 1")
         result = _particles(args, data, meta) if args.kind == "particles" else _depth_range(args, data, meta)
     with StagedOutput(args.output, RECORD, what="--output") as stage:
-        png = result.pop("png")
-        _write_csv(stage.dir / result["table"], result.pop("rows"), result.pop("columns"))
-        result["figure"] = _figure(png, stage.dir / result["figure"])
-        stage.publish(RECORD, json.dumps(result, indent=2, default=_plain))
-    print(result.pop("say"))
+        _publish(stage, result)
     return 0
+
+
+def _publish(stage, result: dict) -> None:
+    """The table, the figure and the record (last) into the staged folder, swapped in; then the summary."""
+    png = result.pop("png")
+    say = result.pop("say")
+    _write_csv(stage.dir / result["table"], result.pop("rows"), result.pop("columns"))
+    result["figure"] = _figure(png, stage.dir / result["figure"])
+    stage.publish(RECORD, json.dumps(result, indent=2, default=_plain))
+    print(say)
 
 
 def _plain(v):
@@ -166,6 +195,104 @@ def _pcc(args, psf, meta) -> dict:
             "lenslet_centroids_px": r["grid"]["centroids"].tolist(), "table": "pcc.csv", "figure": "pcc.png",
             "columns": [f"z_{unit}"] + [f"pcc_{n}" for n in names], "rows": rows,
             "png": ("pcc", z, unit, r, args.level), "say": say}
+
+
+def _numbers(text, flag, n, kind=float):
+    """``n`` comma-separated numbers of ``kind`` from an option's text (one value stands for all)."""
+    try:
+        v = [kind(t) for t in str(text).split(",")]
+    except ValueError:
+        v = []
+    if len(v) == 1 and n > 1:
+        v = v * n
+    if len(v) != n or not all(math.isfinite(x) for x in v):
+        raise InputError(f"{flag}: expected {n} comma-separated {'integers' if kind is int else 'numbers'}, got {text!r}")
+    return v
+
+
+class _Grid:
+    """A lateral scan read as needed: ``grid[i, j]`` is the PSF at row i, column j (a copy in float64)."""
+
+    def __init__(self, data, ny, nx):
+        self.data = data
+        self.shape = (ny, nx) + tuple(data.shape[-2:])
+
+    def __getitem__(self, ij):
+        i, j = ij
+        if self.data.ndim == 4:
+            return np.array(self.data[i, j], np.float64)
+        return np.array(self.data[i * self.shape[1] + j], np.float64)
+
+
+def _lateral_grid(args, data, meta):
+    """The scan as a (ny, nx, My, Mx) grid, its x and y positions (mm or indices), the reference and the unit;
+    every option checked before any PSF is read."""
+    extra = meta.get("extra") or {}
+    if args.grid_shape is not None:
+        ny, nx = _numbers(args.grid_shape, "--grid", 2, int)
+    elif data.ndim == 4:
+        ny, nx = data.shape[:2]
+    elif isinstance(extra.get("grid_shape"), list) and len(extra["grid_shape"]) == 2:
+        ny, nx = (int(v) for v in extra["grid_shape"])
+    else:
+        raise InputError(f"'{args.grid}': a {data.shape[0]}-plane stack; give the scan's rows and columns with --grid NY,NX")
+    if ny < 1 or nx < 1:
+        raise InputError(f"--grid: {ny},{nx} must be positive")
+    n = data.shape[0] * (data.shape[1] if data.ndim == 4 else 1)
+    if ny * nx != n:
+        raise InputError(f"--grid: {ny} x {nx} = {ny * nx} positions, but '{args.grid}' holds {n} PSFs")
+    if ny * nx < 2:
+        raise InputError(f"'{args.grid}': one PSF; a PCC map needs a scan of several positions")
+    unit = "position"
+    xs, ys = np.arange(nx, dtype=float) - (nx - 1) / 2, np.arange(ny, dtype=float) - (ny - 1) / 2
+    if args.step_mm is not None:
+        sy, sx = _numbers(args.step_mm, "--step-mm", 2)
+        if sy <= 0 or sx <= 0:
+            raise InputError(f"--step-mm: {args.step_mm} must be positive")
+        xs, ys, unit = xs * sx, ys * sy, "mm"
+    elif isinstance(extra.get("x_mm"), list) and isinstance(extra.get("y_mm"), list):
+        try:
+            xr, yr = np.asarray(extra["x_mm"], float), np.asarray(extra["y_mm"], float)
+        except (TypeError, ValueError):
+            raise InputError(f"'{args.grid}': its record's x_mm / y_mm are not numbers") from None
+        if xr.shape != (nx,) or yr.shape != (ny,) or not (np.isfinite(xr).all() and np.isfinite(yr).all()):
+            raise InputError(f"'{args.grid}': its record's x_mm / y_mm do not give {nx} and {ny} finite positions")
+        xs, ys, unit = xr, yr, "mm"
+    ref = None
+    if args.ref is not None:
+        ref = tuple(_numbers(args.ref, "--ref", 2, int))
+        if not (0 <= ref[0] < ny and 0 <= ref[1] < nx):
+            raise InputError(f"--ref: {args.ref} is outside the {ny} x {nx} grid")
+    return _Grid(data, ny, nx), xs, ys, ref, unit
+
+
+def _pcc_map(args, grid, xs, ys, ref, unit) -> dict:
+    from ..analysis.lateral import CENTRAL_PCC_LEVEL, high_pcc_diameter_mm, lateral_pcc_map, region_summary
+
+    r = lateral_pcc_map(grid, xs, ys, ref=ref, central=not args.no_central)
+    ny, nx = r["pcc"].shape
+
+    def num(v):
+        return None if not np.isfinite(v) else float(v)
+
+    cols = ["grid_row", "grid_col", f"y_{unit}", f"x_{unit}", "views", "region", "pcc", "pcc_central",
+            "shift_y_px", "shift_x_px"]
+    central = r["pcc_central"]
+    rows = [[i, j, float(ys[i]), float(xs[j]), int(r["views"][i, j]), r["regions"][i, j], num(r["pcc"][i, j]),
+             None if central is None else num(central[i, j]), int(r["shifts"][i, j, 0]), int(r["shifts"][i, j, 1])]
+            for i in range(ny) for j in range(nx)]
+    regions = region_summary(r)
+    diameter = high_pcc_diameter_mm(r)
+    R, C = r["array"]
+    say = (f"{args.output}: lateral PCC over {ny} x {nx} positions ({R} x {C} foci on axis): " +
+           ", ".join(f"{k} {v['pcc_mean']:.2f}" for k, v in regions.items() if v["pcc_mean"] is not None) +
+           ("" if diameter is None else f"; central lenslet PCC > {CENTRAL_PCC_LEVEL:g} over a {diameter:.3g}-"
+                                         f"{unit} diameter"))
+    return {"what": "cm2cl analyze pcc-map", "grid": str(args.grid), "grid_shape": [ny, nx], "unit": unit,
+            "reference": list(r["ref"]), "array": [R, C], "regions": regions,
+            "central_window_px": r["window"], "central_pcc_level": CENTRAL_PCC_LEVEL,
+            f"central_high_pcc_diameter_{unit}": diameter, "table": "pcc_map.csv", "figure": "pcc_map.png",
+            "columns": cols, "rows": rows, "png": ("pcc-map", r, unit), "say": say}
 
 
 def _positive(value, flag):
@@ -336,6 +463,29 @@ def _figure(spec, path):
         ax.set_ylabel("PCC with the reference plane")
         ax.set_ylim(min(0.0, min(float(np.min(c)) for c in r["curves"].values())), 1.02)
         ax.legend(title=f"width at PCC {level:g}")
+    elif spec[0] == "pcc-map":
+        _, r, unit = spec
+        xs, ys = r["x_mm"], r["y_mm"]
+        dx = float(np.mean(np.diff(xs))) if xs.size > 1 else 1.0
+        dy = float(np.mean(np.diff(ys))) if ys.size > 1 else 1.0
+        ext = (xs[0] - dx / 2, xs[-1] + dx / 2, ys[-1] + dy / 2, ys[0] - dy / 2)
+        maps = [("PCC with the on-axis PSF", r["pcc"])]
+        if r["pcc_central"] is not None:
+            maps.append(("central lenslet only", r["pcc_central"]))
+        for k, (title, v) in enumerate(maps):
+            ax = fig.add_subplot(1, len(maps), k + 1)
+            im = ax.imshow(v, cmap="viridis", vmin=0, vmax=1, extent=ext)
+            if xs.size > 1 and ys.size > 1 and np.unique(r["views"]).size > 1:
+                f = 8      # the regions' boundaries run between positions: contour a finely repeated map
+                fx = xs[0] - dx / 2 + (np.arange(xs.size * f) + 0.5) * dx / f
+                fy = ys[0] - dy / 2 + (np.arange(ys.size * f) + 0.5) * dy / f
+                ax.contour(fx, fy, np.repeat(np.repeat(r["views"].astype(float), f, 0), f, 1),
+                           levels=np.unique(r["views"])[:-1] + 0.5, colors="w", linewidths=0.8)
+            ax.set_title(title, fontsize=9)
+            ax.set_xlabel(f"x ({unit})")
+            ax.set_ylabel(f"y ({unit})")
+            fig.colorbar(im, ax=ax, shrink=0.8, label="PCC (white: view-region boundaries)" if k == len(maps) - 1
+                         else None)
     elif spec[0] == "mtf":
         r = spec[1]
         m = r["mtf"]

@@ -276,8 +276,11 @@ def tiff_depths(path):
     return _geometry(path, ome, ndim)[1]
 
 
-def read_tiff(path):
+def read_tiff(path, memmap: bool = False):
     """Read a TIFF written by :func:`write_tiff`, an ImageJ hyperstack, or any other TIFF.
+
+    With ``memmap`` the pixels are not read into memory: the array maps the file where its data are
+    stored contiguously, else a temporary file tifffile decodes them into (for scans larger than memory).
 
     Returns (array, meta): ``voxel_size_um`` ((dz, dy, dx) for 3D, (dy, dx) for 2D; None when the file
     carries no physical scale), ``unit`` ('um', or 'pixel' when the scale is not known),
@@ -292,7 +295,7 @@ def read_tiff(path):
     path = _existing_file(path)
     try:
         with tifffile.TiffFile(path) as tf:
-            arr = tf.asarray()
+            arr = tf.asarray(out="memmap") if memmap else tf.asarray()
             ome = tf.ome_metadata if tf.is_ome else None
             ij = tf.imagej_metadata or {}
             page = tf.pages[0]
