@@ -361,6 +361,19 @@ def test_simulate_writes_tiffs_with_geometry_and_a_record(tmp_path):
     idx = np.round(pts).astype(int)
     assert (gt[idx[:, 0], idx[:, 1], idx[:, 2]] > 0.25 * gt.max()).all()
     assert np.allclose(np.interp(pts[:, 0], np.arange(5), depths), props["z_um"], atol=1e-3 * 250)
+    # one frame for volumes, MIPs and emitters: the um columns are napari's world coordinates of the ground
+    # truth (index x scale + translate, as its reader places the volume), and the record maps them back to
+    # the scene's own object positions (from the optical axis, mirrored, at the depth's magnification)
+    from cm2cl.io.napari_reader import read_tiff_layer
+    _, gkw, _ = read_tiff_layer(out / "ground_truth.ome.tif")
+    world = pts * np.array(gkw["scale"]) + np.array(gkw["translate"])
+    assert np.allclose(np.column_stack([props["z_um"], props["y_um"], props["x_um"]]), world, rtol=1e-7, atol=1e-4)
+    fr = saved["emitters_frame"]
+    k = (fr["l_um"] + props["z_um"]) / fr["l_um"]
+    obj = np.column_stack([(fr["x0_um"] - props["x_um"]) * k, (fr["y0_um"] - props["y_um"]) * k, props["z_um"]])
+    truth = sim.simulate_scene("demo_beads", seed=3).emitters
+    true_xyz = np.column_stack([truth["x_um"], truth["y_um"], truth["z_um"]])
+    assert np.allclose(obj, true_xyz, rtol=1e-6, atol=1e-4)
     assert np.array_equal(meas, sim.simulate_scene("demo_beads", seed=3).measurement)
     # a second run into the same directory replaces it
     sim.simulate("demo_beads", out, seed=4)

@@ -20,8 +20,8 @@ def register(subparsers) -> argparse.ArgumentParser:
         description="Simulate a CM2 measurement from a scene file (TOML) or a built-in scene name. "
                     "Writes measurement.ome.tif (sensor pixel), psf.ome.tif and ground_truth.ome.tif (OME-TIFF "
                     "with the object-space voxel size and depths), emitters.csv for bead scenes (napari points: "
-                    "axis-0..2 = plane, row, column; physical x_um, y_um, z_um), and simulation.json "
-                    "(scene, seed, effects applied) last.")
+                    "axis-0..2 = plane, row, column; z_um, y_um, x_um in the volume's frame, from its first "
+                    "voxel), and simulation.json (scene, seed, effects applied, the emitters' frame) last.")
     p.add_argument("scene", nargs="?", help="built-in scene name (see --list) or path to a .toml file")
     p.add_argument("-o", "--output", dest="outdir", metavar="OUTDIR", help="output directory")
     p.add_argument("--seed", type=int, default=None,

@@ -44,8 +44,24 @@ __all__ = ["simulate", "simulate_scene", "write_simulation", "SimulationResult",
 _STAGE_KEYS = {"objects": 1, "object": 2, "optics": 3, "sensor": 4, "random_seed": 5}
 
 #: emitters.csv columns: napari's CSV points reader takes the ``axis-*`` columns as point coordinates
-#: (data/voxel units of ground_truth.ome.tif: plane, row, column) and the others as point properties
-EMITTER_COLUMNS = ("index", "axis-0", "axis-1", "axis-2", "x_um", "y_um", "z_um", "brightness", "diameter_um")
+#: (data/voxel units of ground_truth.ome.tif: plane, row, column) and the others as point properties. The
+#: ``z_um, y_um, x_um`` are the same points in the frame of the volumes and MIPs: napari's world coordinates
+#: of ground_truth.ome.tif (index x voxel size, z from its first plane's depth, y and x from its first
+#: voxel); simulation.json's ``emitters_frame`` says how they map to the object's position.
+EMITTER_COLUMNS = ("index", "axis-0", "axis-1", "axis-2", "z_um", "y_um", "x_um", "brightness", "diameter_um")
+
+
+def emitters_frame(optics: CM2Optics, depths, voxel) -> dict:
+    """How emitters.csv's z_um, y_um, x_um (the volume's frame) map to the object's position (x, y from the
+    optical axis, mirrored by the lens; the lateral scale of a plane at depth z is the nominal one times
+    m(0) / m(z) = (l + z) / l)."""
+    cy, cx = optics.center_px
+    return {"frame": "napari world coordinates of ground_truth.ome.tif, um: z = the plane's depth, y = row x "
+                     "dy, x = column x dx from the first voxel (as the MIPs and the volumes' axes)",
+            "origin_um": [float(depths[0]), 0.0, 0.0], "voxel_size_um": list(voxel),
+            "object_position": "x_obj = (x0_um - x_um) (l_um + z_um) / l_um, y_obj = (y0_um - y_um) (l_um + z_um) / "
+                               "l_um, z_obj = z_um",
+            "x0_um": cx * voxel[2], "y0_um": cy * voxel[1], "l_um": 1000.0 * optics.l_mm}
 
 
 @dataclass
@@ -205,6 +221,7 @@ def simulate_scene(scene, seed: int | None = None, device=None) -> SimulationRes
                             "central lens; object +x -> decreasing column, +y -> decreasing row",
                    "units": "photo-electrons per voxel (all views, on axis)",
                    "points_outside_render_grid": int(dropped)},
+        "emitters_frame": emitters_frame(optics, depths, voxel),
         "render": render_info,
         "effects_applied": applied,
         "effects_not_named": [n for n in _effects.EFFECTS if n not in scene.effect_names],
@@ -263,11 +280,14 @@ def _write_outputs(result: SimulationResult, scene: Scene, tmp: Path) -> dict:
     files["ground_truth"] = "ground_truth.ome.tif"
     if result.emitters is not None:
         e = result.emitters
-        table = np.column_stack([np.arange(len(e["plane"]))] +
-                                [e[c] for c in ("plane", "row", "col", "x_um", "y_um", "z_um", "brightness",
-                                                "diameter_um")])
+        dz, dy, dx = result.voxel_size_um
+        z0, n = float(result.depths_um[0]), len(e["plane"])
+        z = z0 + e["plane"] * dz if len(result.depths_um) > 1 else np.full(n, z0)
+        table = np.column_stack([np.arange(n), e["plane"], e["row"], e["col"], z, e["row"] * dy, e["col"] * dx,
+                                 e["brightness"],
+                                 e["diameter_um"]])
         np.savetxt(tmp / "emitters.csv", table, delimiter=",", header=",".join(EMITTER_COLUMNS), comments="",
-                   fmt=["%d"] + ["%.6g"] * (len(EMITTER_COLUMNS) - 1))
+                   fmt=["%d"] + ["%.9g"] * 6 + ["%.6g"] * (len(EMITTER_COLUMNS) - 7))
         files["emitters"] = "emitters.csv"
     return files
 
