@@ -244,10 +244,10 @@ def write_md(rows, info, path: Path, argv) -> None:
 
 def _map_png(m, path: Path) -> bool:
     """The two maps as ``cm2cl analyze pcc-map`` draws them; False without matplotlib."""
-    from cm2cl.cli.analyze import _figure
+    from cm2cl.cli.analyze import figure
 
     path.parent.mkdir(parents=True, exist_ok=True)
-    return _figure(("pcc-map", m, "mm"), path) is not None
+    return figure(("pcc-map", m, "mm"), path) is not None
 
 
 def main(argv=None) -> int:

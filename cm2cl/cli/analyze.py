@@ -149,7 +149,7 @@ def _publish(stage, result: dict) -> None:
     png = result.pop("png")
     say = result.pop("say")
     _write_csv(stage.dir / result["table"], result.pop("rows"), result.pop("columns"))
-    result["figure"] = _figure(png, stage.dir / result["figure"])
+    result["figure"] = figure(png, stage.dir / result["figure"])
     stage.publish(RECORD, json.dumps(result, indent=2, default=_plain))
     print(say)
 
@@ -443,7 +443,32 @@ def _write_csv(path, rows, columns):
         w.writerows(rows)
 
 
-def _figure(spec, path):
+def _draw_pcc_map(fig, r, unit):
+    """The lateral PCC maps (whole array, central lenslet) with the view regions' boundaries."""
+    xs, ys = r["x_mm"], r["y_mm"]
+    dx = float(np.mean(np.diff(xs))) if xs.size > 1 else 1.0
+    dy = float(np.mean(np.diff(ys))) if ys.size > 1 else 1.0
+    ext = (xs[0] - dx / 2, xs[-1] + dx / 2, ys[-1] + dy / 2, ys[0] - dy / 2)
+    maps = [("PCC with the on-axis PSF", r["pcc"])]
+    if r["pcc_central"] is not None:
+        maps.append(("central lenslet only", r["pcc_central"]))
+    for k, (title, v) in enumerate(maps):
+        ax = fig.add_subplot(1, len(maps), k + 1)
+        im = ax.imshow(v, cmap="viridis", vmin=0, vmax=1, extent=ext)
+        if xs.size > 1 and ys.size > 1 and np.unique(r["views"]).size > 1:
+            f = 8      # the regions' boundaries run between positions: contour a finely repeated map
+            fx = xs[0] - dx / 2 + (np.arange(xs.size * f) + 0.5) * dx / f
+            fy = ys[0] - dy / 2 + (np.arange(ys.size * f) + 0.5) * dy / f
+            ax.contour(fx, fy, np.repeat(np.repeat(r["views"].astype(float), f, 0), f, 1),
+                       levels=np.unique(r["views"])[:-1] + 0.5, colors="w", linewidths=0.8)
+        ax.set_title(title, fontsize=9)
+        ax.set_xlabel(f"x ({unit})")
+        ax.set_ylabel(f"y ({unit})")
+        fig.colorbar(im, ax=ax, shrink=0.8, label="PCC (white: view-region boundaries)" if k == len(maps) - 1
+                     else None)
+
+
+def figure(spec, path):
     """The PNG of the analysis, or None (with why in the record) without matplotlib."""
     try:
         from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -464,28 +489,7 @@ def _figure(spec, path):
         ax.set_ylim(min(0.0, min(float(np.min(c)) for c in r["curves"].values())), 1.02)
         ax.legend(title=f"width at PCC {level:g}")
     elif spec[0] == "pcc-map":
-        _, r, unit = spec
-        xs, ys = r["x_mm"], r["y_mm"]
-        dx = float(np.mean(np.diff(xs))) if xs.size > 1 else 1.0
-        dy = float(np.mean(np.diff(ys))) if ys.size > 1 else 1.0
-        ext = (xs[0] - dx / 2, xs[-1] + dx / 2, ys[-1] + dy / 2, ys[0] - dy / 2)
-        maps = [("PCC with the on-axis PSF", r["pcc"])]
-        if r["pcc_central"] is not None:
-            maps.append(("central lenslet only", r["pcc_central"]))
-        for k, (title, v) in enumerate(maps):
-            ax = fig.add_subplot(1, len(maps), k + 1)
-            im = ax.imshow(v, cmap="viridis", vmin=0, vmax=1, extent=ext)
-            if xs.size > 1 and ys.size > 1 and np.unique(r["views"]).size > 1:
-                f = 8      # the regions' boundaries run between positions: contour a finely repeated map
-                fx = xs[0] - dx / 2 + (np.arange(xs.size * f) + 0.5) * dx / f
-                fy = ys[0] - dy / 2 + (np.arange(ys.size * f) + 0.5) * dy / f
-                ax.contour(fx, fy, np.repeat(np.repeat(r["views"].astype(float), f, 0), f, 1),
-                           levels=np.unique(r["views"])[:-1] + 0.5, colors="w", linewidths=0.8)
-            ax.set_title(title, fontsize=9)
-            ax.set_xlabel(f"x ({unit})")
-            ax.set_ylabel(f"y ({unit})")
-            fig.colorbar(im, ax=ax, shrink=0.8, label="PCC (white: view-region boundaries)" if k == len(maps) - 1
-                         else None)
+        _draw_pcc_map(fig, *spec[1:])
     elif spec[0] == "mtf":
         r = spec[1]
         m = r["mtf"]
