@@ -166,19 +166,25 @@ def _refined(solve, y, psf, weights, prm, padded_shape, x0):
     inner = replace(prm, max_iter=min(prm.psf_refine_iter, prm.max_iter))
     h = np.asarray(psf, np.float64)
     P, x_start, rounds = padded_shape, x0, []
-    for _ in range(prm.psf_refine):
-        solver, rec = solve(h, inner, P, x_start)
+    n = prm.psf_refine
+    for rnd in range(n):
+        scale, nodes = R.round_schedule(rnd, n, prm.psf_refine_l1_start, prm.psf_refine_depth_nodes)
+        solver, rec = solve(h, replace(inner, l1_scale=prm.l1_scale * scale), P, x_start)
         P, x_start = solver.P, rec.volume_padded
         b = rec.background if rec.background is not None else 0.0
-        h, k, misfit = R.refine_step(h, labels, rec.volume_padded, y - b, prm.psf_refine_radius, w)
-        rounds.append({"iterations": rec.iterations, "residual": misfit, "kernels": R.kernel_summary(k)})
+        h, k, misfit = R.refine_step(h, labels, rec.volume_padded, y - b, prm.psf_refine_radius, w,
+                                     depth_nodes=nodes)
+        rounds.append({"iterations": rec.iterations, "residual": misfit, "l1_scale": scale, "depth_nodes": nodes,
+                       "kernels": R.kernel_summary(k)})
         gains = [q["gain"] for q in rounds[-1]["kernels"]]
         log.info("PSF refinement round %d of %d: %d iterations, misfit %.4f before it; %d kernels, gains %.2f-%.2f",
                  len(rounds), prm.psf_refine, rec.iterations, misfit, len(gains), min(gains), max(gains))
     solver, rec = solve(h, prm, P, x_start)
     rec.psf = h
     rec.info["psf_refine"] = {"rounds": prm.psf_refine, "lenslets": int(labels.max()),
-                              "radius_px": prm.psf_refine_radius, "overrelax": R.OVERRELAX, "per_round": rounds,
+                              "radius_px": prm.psf_refine_radius, "overrelax": R.OVERRELAX,
+                              "depth_nodes": int(R.depth_weights(h.shape[0], prm.psf_refine_depth_nodes).shape[0]),
+                              "l1_start": prm.psf_refine_l1_start, "per_round": rounds,
                               "iterations_total": sum(r["iterations"] for r in rounds) + rec.iterations}
     return solver, rec
 

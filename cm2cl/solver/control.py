@@ -74,7 +74,7 @@ class ProblemScale:
     def weights(self, p: ADMMParams) -> tuple[float, float]:
         """(l1, tv): the given weights, or the defaults relative to the volume-domain noise level."""
         ratio = p.l1_noise_ratio if p.l1_noise_ratio is not None else self.universal_ratio
-        l1 = p.l1 if p.l1 is not None else ratio * self.noise_x
+        l1 = (p.l1 if p.l1 is not None else ratio * self.noise_x) * p.l1_scale
         tv = p.tv if p.tv is not None else p.tv_noise_ratio * self.noise_x
         return float(l1), float(tv)
 

@@ -163,12 +163,24 @@ class ADMMParams:
         "does not match the sample's optics (aberrations, vignetting, focus); 0: the PSF as given.",
         unit="rounds", flag=True)
     psf_refine_iter: int = _param(
-        150, {"type": "int", "min": 1}, "Iterations of each solve before a PSF refinement round.", unit=_ITERS,
+        100, {"type": "int", "min": 1}, "Iterations of each solve before a PSF refinement round.", unit=_ITERS,
         flag=True)
     psf_refine_radius: int = _param(
         3, {"type": "int", "min": 1, "max": 15},
         "Radius of each lenslet's refinement kernel ((2r+1) x (2r+1) taps): the largest blur or shift it models.",
         unit="px", flag=True)
+    psf_refine_depth_nodes: int = _param(
+        3, {"type": "int", "min": 1, "max": 8},
+        "Depth nodes of each lenslet's refinement kernel: the kernel is interpolated linearly between this many "
+        "nodes spread evenly over the planes (an aberration that grows with the spot's defocus is no single "
+        "convolution); 1: one kernel for every plane.", unit="nodes", flag=True)
+    psf_refine_l1_start: float = _param(
+        12.0, {"type": "float", "min": 1},
+        "The first refinement round solves with this many times the l1 weight, coming down geometrically to 1 x "
+        "in the last round: the kernels are first fitted to the brightest structure, before spurious emitters "
+        "can absorb the PSF's misfit; 1: every round at the final weight.", unit="x", flag=True)
+    l1_scale: float = _param(
+        1.0, _POS, "Multiplier of the l1 weight, given or by the rule (the PSF refinement's rounds use it).")
     background: str = _param(
         "model", {"type": "str", "choices": ("model", "none")},
         "'model': the data term is y = C H x + b with b a smooth, non-negative 2D background estimated jointly "

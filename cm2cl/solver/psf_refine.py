@@ -7,10 +7,14 @@ one convolved with an unknown small kernel k_j (a local blur, shift and gain):
 
     h_true = sum_j k_j (*) (h . m_j)
 
-with m_j the lenslet's footprint on the sensor (:func:`lenslet_labels`). Given a reconstruction x and its
-background b, the kernels are the non-negative least-squares fit, weighted like the data term, of
+with m_j the lenslet's footprint on the sensor (:func:`lenslet_labels`). An aberration that scales with the
+spot (the spot's width changes with depth) is no fixed convolution, so the kernel may vary with depth: it
+is interpolated linearly between G depth nodes spread evenly over the stack's planes, k_j(i) = sum_g
+w_g(i) k_jg with hat weights w_g (:func:`depth_weights`; G = 1: one kernel for every plane). Given a
+reconstruction x and its background b, the kernels are the non-negative least-squares fit, weighted like
+the data term, of
 
-    y - b  =  C sum_j k_j (*) F_j,     F_j = sum_i (h_i . m_j) (*) x_i   (on the padded grid)
+    y - b  =  C sum_jg k_jg (*) F_jg,     F_jg = sum_i w_g(i) (h_i . m_j) (*) x_i   (on the padded grid)
 
 with a ridge towards the identity kernel (:func:`fit_kernels`); the PSF is updated
 (:func:`apply_kernels`), the volume re-solved from the last one, and so on for a few rounds
@@ -65,16 +69,30 @@ def lenslet_labels(psf: np.ndarray) -> np.ndarray:
     return lab[iy, ix].astype(np.int32)
 
 
-def lenslet_images(psf: np.ndarray, labels: np.ndarray, volume_padded: np.ndarray) -> np.ndarray:
-    """(n, Py, Px): F_j = sum_i (h_i . m_j) (*) x_i on the padded grid (circular, optical axis at the
-    sensor centre, as the solver's forward model), one per lenslet label j = 1..n."""
+def depth_weights(nz: int, nodes: int) -> np.ndarray:
+    """(G, nz) hat weights of G depth nodes spread evenly over the planes 0..nz-1 (each plane's weights sum
+    to 1; node g sits at plane g (nz - 1) / (G - 1)); G = 1, or a single plane: ones."""
+    G = max(1, min(int(nodes), nz))
+    if G == 1:
+        return np.ones((1, nz))
+    t = np.arange(nz) / (nz - 1) * (G - 1)
+    return np.maximum(0.0, 1.0 - np.abs(t[None, :] - np.arange(G)[:, None]))
+
+
+def lenslet_images(psf: np.ndarray, labels: np.ndarray, volume_padded: np.ndarray, depth_w=None) -> np.ndarray:
+    """(n G, Py, Px): F_jg = sum_i w_g(i) (h_i . m_j) (*) x_i on the padded grid (circular, optical axis at the
+    sensor centre, as the solver's forward model), lenslet label j = 1..n, depth node g of ``depth_w``
+    ((G, nz), :func:`depth_weights`; None: one node), index j G + g."""
     P = volume_padded.shape[1:]
     X = sfft.rfft2(np.asarray(volume_padded, np.float64), workers=-1)
     n = int(labels.max())
-    out = np.empty((n,) + tuple(P))
+    W = np.ones((1, psf.shape[0])) if depth_w is None else np.asarray(depth_w, np.float64)
+    out = np.empty((n * W.shape[0],) + tuple(P))
     for j in range(n):
         hj = centered_psf(np.asarray(psf, np.float64) * (labels == j + 1), P)
-        out[j] = sfft.irfft2((sfft.rfft2(hj, workers=-1) * X).sum(axis=0), s=P, workers=-1)
+        HX = sfft.rfft2(hj, workers=-1) * X
+        for g, wg in enumerate(W):
+            out[j * W.shape[0] + g] = sfft.irfft2(np.tensordot(wg, HX, axes=(0, 0)), s=P, workers=-1)
     return out
 
 
@@ -126,6 +144,21 @@ def fit_kernels(images: np.ndarray, target: np.ndarray, sensor_shape, radius: in
     return k.reshape(n, 2 * radius + 1, 2 * radius + 1)
 
 
+def round_schedule(index: int, rounds: int, l1_start: float, depth_nodes: int) -> tuple[float, int]:
+    """(l1 scale, depth nodes) of refinement round ``index`` of ``rounds``.
+
+    The alternation of volume and kernels settles where the volume has absorbed the mismatch (ghosts next to
+    the beads explain the misfit as well as a better PSF would), so it starts sparse: the first round's solve
+    has ``l1_start`` x the final l1 weight, which comes down geometrically to 1 x in the last round. Only the
+    brightest structure, which the nominal PSF already places right, then shapes the first kernels. The first
+    third of the rounds fit one kernel per lenslet (gain, blur, shift: well determined), the rest
+    ``depth_nodes`` of them (docs/psf_refine.md measured both choices)."""
+    t = index / max(rounds - 1, 1)
+    scale = float(l1_start) ** (1.0 - t)
+    nodes = 1 if index < rounds // 3 else int(depth_nodes)
+    return scale, nodes
+
+
 def relax(kernels: np.ndarray, beta: float = OVERRELAX) -> np.ndarray:
     """The kernels scaled to mean sum 1 (the volume carries the overall scale), then over-relaxed away
     from the identity: max(delta + beta (k - delta), 0)."""
@@ -136,15 +169,21 @@ def relax(kernels: np.ndarray, beta: float = OVERRELAX) -> np.ndarray:
     return np.maximum(delta + beta * (k - delta), 0.0)
 
 
-def apply_kernels(psf: np.ndarray, labels: np.ndarray, kernels: np.ndarray) -> np.ndarray:
-    """sum_j k_j (*) (h . m_j) per plane (zero outside the sensor), clipped at 0 and scaled to the given
-    stack's total light."""
+def apply_kernels(psf: np.ndarray, labels: np.ndarray, kernels: np.ndarray, depth_w=None) -> np.ndarray:
+    """sum_j k_j(i) (*) (h_i . m_j) per plane i (zero outside the sensor), k_j(i) = sum_g w_g(i) k_jg
+    (``kernels`` indexed j G + g, ``depth_w`` (G, nz); None: one kernel per lenslet), clipped at 0 and scaled to
+    the given stack's total light."""
     psf = np.asarray(psf, np.float64)
+    W = np.ones((1, psf.shape[0])) if depth_w is None else np.asarray(depth_w, np.float64)
+    G = W.shape[0]
+    if len(kernels) % G:
+        raise ValueError(f"apply_kernels: {len(kernels)} kernels for {G} depth nodes")
     out = np.zeros_like(psf)
-    for j, k in enumerate(kernels):
+    for j in range(len(kernels) // G):
         hj = psf * (labels == j + 1)
+        kj = np.asarray(kernels[j * G:(j + 1) * G])
         for i in range(psf.shape[0]):
-            out[i] += signal.fftconvolve(hj[i], k, mode="same")
+            out[i] += signal.fftconvolve(hj[i], np.tensordot(W[:, i], kj, axes=(0, 0)), mode="same")
     out = np.maximum(out, 0.0)
     return out * (psf.sum() / max(out.sum(), 1e-300))
 
@@ -162,19 +201,21 @@ def kernel_summary(kernels: np.ndarray) -> list[dict]:
     return out
 
 
-def refine_step(psf, labels, volume_padded, target, radius: int, weights=None, beta: float = OVERRELAX):
-    """One round: (the refined PSF stack, the kernels applied, the relative weighted misfit
+def refine_step(psf, labels, volume_padded, target, radius: int, weights=None, beta: float = OVERRELAX,
+                depth_nodes: int = 1):
+    """One round: (the refined PSF stack, the kernels applied (indexed j G + g), the relative weighted misfit
     ||target - C H x|| / ||target|| before it) from a reconstruction's padded volume and the measurement
-    less its background."""
-    F = lenslet_images(psf, labels, volume_padded)
+    less its background; ``depth_nodes`` G kernels per lenslet, interpolated over depth."""
+    W = depth_weights(psf.shape[0], depth_nodes)
+    F = lenslet_images(psf, labels, volume_padded, W)
     M = psf.shape[1:]
     oy, ox = crop_offsets(M, F.shape[1:])
     w = np.ones(M) if weights is None else np.asarray(weights, np.float64)
     model = F.sum(axis=0)[oy:oy + M[0], ox:ox + M[1]]
     misfit = float(np.sqrt(np.sum(w * (target - model) ** 2) / max(np.sum(w * target ** 2), 1e-300)))
     k = relax(fit_kernels(F, target, M, radius, weights), beta)
-    return apply_kernels(psf, labels, k), k, misfit
+    return apply_kernels(psf, labels, k, W), k, misfit
 
 
-__all__ = ["lenslet_labels", "lenslet_images", "fit_kernels", "relax", "apply_kernels", "kernel_summary",
+__all__ = ["lenslet_labels", "depth_weights", "round_schedule", "lenslet_images", "fit_kernels", "relax", "apply_kernels", "kernel_summary",
            "refine_step"]
