@@ -17,39 +17,43 @@ from .runtime import get_runtime
 
 def octagon(a: int, b: int) -> np.ndarray:
     """The footprint realised by h and v segments of half-length a and both diagonals of half-length b:
-    a boolean (2r+1, 2r+1) array, r = a + 2b (the reach)."""
+    a boolean (2r+1, 2r+1) array, r = a + 2b (the reach). The h and v segments sum to the square
+    max(|y|, |x|) <= a, the diagonals to the lattice points |y| + |x| <= 2b with y + x even; for a >= 1 the
+    square fills the parity gaps, which leaves |y| + |x| <= 2a + 2b within the square of the reach."""
     r = a + 2 * b
-    pts = {(0, 0)}
-    segs = [[(0, t) for t in range(-a, a + 1)], [(t, 0) for t in range(-a, a + 1)],
-            [(t, t) for t in range(-b, b + 1)], [(t, -t) for t in range(-b, b + 1)]]
-    for seg in segs:
-        pts = {(p[0] + s[0], p[1] + s[1]) for p in pts for s in seg}
-    fp = np.zeros((2 * r + 1, 2 * r + 1), bool)
-    for y, x in pts:
-        fp[y + r, x + r] = True
-    return fp
+    yy, xx = np.abs(np.mgrid[-r:r + 1, -r:r + 1])
+    if a == 0:
+        return (yy + xx <= 2 * b) & ((yy + xx) % 2 == 0)
+    return yy + xx <= 2 * (a + b)
 
 
 def disk_segments(radius_px: float) -> tuple[int, int]:
-    """(a, b): the octagon closest to a disk of ``radius_px`` (fewest differing pixels)."""
+    """(a, b): the octagon closest to a disk of ``radius_px`` (fewest differing pixels; the smallest b of
+    those tied). Rows of the disk and of an octagon with a >= 1 are centred runs, so the pixels that differ
+    are twice the difference of the half-widths summed over rows: time linear in the radius per b."""
     r = float(radius_px)
     if not np.isfinite(r) or r < 1:
         raise InputError(f"background radius: {radius_px!r} px is smaller than a pixel (needs >= 1)")
     R = int(np.ceil(r))
-    yy, xx = np.mgrid[-R:R + 1, -R:R + 1]
-    disk = yy ** 2 + xx ** 2 <= r * r
-    best = None
-    for b in range(0, R // 2 + 1):
-        a = R - 2 * b
-        if a < 0:
-            continue
-        fp = octagon(a, b)
-        pad = (disk.shape[0] - fp.shape[0]) // 2
-        cmp = np.pad(fp, pad) if pad > 0 else fp
-        err = int(np.sum(cmp != disk))
-        if best is None or err < best[0]:
-            best = (err, a, b)
-    return best[1], best[2]
+    yy, xx = np.mgrid[0:R + 1, 0:R + 1]
+    w = (yy ** 2 + xx ** 2 <= r * r).sum(1) - 1            # the disk's half-width in rows 0..R (-1: empty)
+    disk_w = np.concatenate([w[:0:-1], w])                  # rows -R..R
+    bs = np.arange(0, R // 2 + 1)
+    a_s = R - 2 * bs                                        # >= 0; a = 0 only for the last b when R is even
+    y = np.abs(np.arange(-R, R + 1))
+    oct_w = np.minimum(R, 2 * (a_s + bs)[:, None] - y[None, :])
+    errs = 2 * np.abs(disk_w[None, :] - oct_w).sum(1)
+    if a_s[-1] == 0:             # the diamond |y| + |x| <= R with y + x even: every other pixel of a run
+        q = R - y                                           # its half-width per row
+        inside = _same_parity(np.minimum(disk_w, q), y)     # of the disk's run
+        errs[-1] = np.sum(np.maximum(2 * disk_w + 1, 0) + _same_parity(q, y) - 2 * inside)
+    b = int(np.argmin(errs))                                # the first of those tied, as before
+    return R - 2 * b, b
+
+
+def _same_parity(m, y):
+    """How many x in [-m, m] have x + y even (0 where m < 0)."""
+    return np.where(m < 0, 0, np.where(y % 2 == 0, 2 * (m // 2) + 1, 2 * ((m + 1) // 2)))
 
 
 def grey_opening(image, a: int, b: int, device=None) -> np.ndarray:

@@ -1,6 +1,7 @@
 """Background removal of measurements as in the CM2 paper (Fig. 5A): the slowly varying fluorescent
 background is estimated by a grey opening with a disk larger than the targets and subtracted. The opening
-runs on the device (:mod:`cm2cl.device.morphology`, cost independent of the disk's size).
+runs on the device (:mod:`cm2cl.device.morphology`, cost independent of the disk's size); the disk must fit
+across the image's longer side.
 
 Why an opening (and not a rolling ball or a Gaussian high-pass): an opening never exceeds the image, so
 the corrected image stays >= 0 and targets narrower than the disk keep their peak exactly (the opening
@@ -50,9 +51,11 @@ def remove_background(img, radius_px: float, device=None):
     from ..device.morphology import disk_segments, grey_opening
 
     img = np.asarray(img, np.float64)
-    if radius_px > max(img.shape):   # (the disk's fit costs time quadratic in its radius)
-        raise InputError(f"background: an opening of radius {radius_px:g} px is larger than the measurement "
-                         f"({' x '.join(map(str, img.shape))} px); the disk must fit in the image")
+    across = 2 * np.ceil(float(radius_px)) + 1
+    if across > max(img.shape):     # (an opening by a disk wider than the image is nearly a constant)
+        raise InputError(f"background: an opening of radius {radius_px:g} px (a disk {across:g} px across) is larger "
+                         f"than the measurement ({' x '.join(map(str, img.shape))} px); the disk must fit "
+                         "across the image's longer side")
     a, b = disk_segments(radius_px)
     if not np.all(np.isfinite(img)):
         raise InputError("background: the measurement contains NaN/Inf values")
