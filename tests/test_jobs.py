@@ -180,6 +180,21 @@ def test_bad_series_inputs_are_refused_before_any_output(rt, tmp_path):
         FrameSeries([tmp_path / "missing.tif"])
 
 
+def test_frames_of_files_with_singleton_axes_read_as_counted(tmp_path):
+    """Issue 27 F5: a (1, 2, 1, My, Mx) TCZYX file counts as 2 frames and a (1, 1, 1, My, Mx) one as 1; each
+    reads as its own pixels (reading one used to raise ValueError after the store was created). tifffile
+    keeps the singleton axes of its own 'shaped' files (an OME file's series comes squeezed)."""
+    rng = np.random.default_rng(5)
+    two, one, flat = (rng.random(s).astype(np.float32) for s in ((1, 2, 1, 12, 10), (1, 1, 1, 12, 10), (12, 10)))
+    tifffile.imwrite(tmp_path / "a.tif", flat)
+    tifffile.imwrite(tmp_path / "b.tif", two, metadata={"axes": "TCZYX"})
+    tifffile.imwrite(tmp_path / "c.tif", one, metadata={"axes": "TCZYX"})
+    s = FrameSeries([tmp_path / "a.tif", tmp_path / "b.tif", tmp_path / "c.tif"])
+    assert len(s) == 4 and s.shape == (12, 10)
+    for i, want in enumerate((flat, two[0, 0, 0], two[0, 1, 0], one[0, 0, 0])):
+        np.testing.assert_array_equal(s.read(i), want)
+
+
 @pytest.mark.parametrize("extra, flag", [
     (["--dry-run"], "--dry-run"), (["--mask", "saturated"], "--mask"), (["--mask", "bogus"], "--mask"),
     (["--saturation", "1000"], "--saturation"), (["--tile", "32", "32"], "--tile"), (["--padded"], "--padded"),

@@ -41,6 +41,19 @@ def _expand(source: str, what: str = "measurement") -> list[Path]:
     return [p]
 
 
+def _kept_axes(shape: tuple) -> list[int]:
+    """The axes of a file's series that hold frames: all of a 2D or 3D one, the longer than 1 of more
+    (a (1, T, 1, My, Mx) TCZYX file is a (T, My, Mx) series)."""
+    return [k for k, n in enumerate(shape) if n != 1] if len(shape) > 3 else list(range(len(shape)))
+
+
+def _frame_key(shape: tuple, index: int) -> tuple:
+    """The index into a file's series, of shape ``shape``, of its frame ``index``."""
+    kept = _kept_axes(shape)
+    time_axis = kept[0] if len(kept) == 3 else None
+    return tuple(index if k == time_axis else (slice(None) if k in kept else 0) for k in range(len(shape)))
+
+
 def _frames_of(path: Path, what: str = "measurement") -> list[Frame]:
     import tifffile
 
@@ -50,7 +63,7 @@ def _frames_of(path: Path, what: str = "measurement") -> list[Frame]:
             shape, dtype = tuple(int(n) for n in s.shape), np.dtype(s.dtype)
     except Exception as exc:  # noqa: BLE001 - any unreadable file gets one line
         raise InputError(f"{what} '{path}': not a readable TIFF ({exc})") from exc
-    shape = tuple(n for n in shape if n != 1) if len(shape) > 3 else shape
+    shape = tuple(shape[k] for k in _kept_axes(shape))
     if dtype.kind not in "uif":
         raise InputError(f"{what} '{path}': dtype {dtype} is not numeric")
     if len(shape) == 2:
@@ -95,7 +108,7 @@ class FrameSeries:
             if len(s.shape) == 2:
                 return s.asarray()
             a = zarr.open(s.aszarr(), mode="r")
-            return np.asarray(a[f.index]).reshape(self.shape)
+            return np.asarray(a[_frame_key(tuple(int(n) for n in s.shape), f.index)]).reshape(self.shape)
 
     def identity(self) -> str:
         """A digest of which frames these are: paths, indices, sizes and modification times (a changed
