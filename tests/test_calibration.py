@@ -107,6 +107,9 @@ def test_fit_lateral_pads_or_crops_around_the_axis():
     assert info["message"] is None and np.array_equal(same, a)
     with pytest.raises(InputError, match=r"psf: optical axis \(9, 1\) \(row, col\) is outside its 5 x 7"):
         fit_lateral(a, (5, 7), axis=(9, 1))
+    for bad in ("ab", 5, [float("nan"), 3]):            # a PSF record's axis_pixel of the wrong type (issue 27)
+        with pytest.raises(InputError, match="is not a \\(row, col\\) pair of finite numbers"):
+            fit_lateral(a, (5, 7), axis=bad)
 
 
 def test_prepared_stack_from_a_raw_scan_reconstructs_like_the_ideal_stack():

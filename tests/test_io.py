@@ -135,7 +135,8 @@ def test_bad_geometry_and_files_are_one_line_input_errors(tmp_path):
     ('PhysicalSizeX="2.0"', 'PhysicalSizeX="abc"', "PhysicalSizeX is 'abc', not a number"),
     ('PhysicalSizeZ="10.0"', 'PhysicalSizeZ="inf"', "PhysicalSizeZ is 'inf', not a finite number"),
     ('PositionZ="0.0"', 'PositionZ="deep"', "Plane PositionZ is 'deep', not a number"),
-    ('TheZ="1"', 'TheZ="1.5"', "Plane TheZ is '1.5', not a number"),
+    ('TheZ="1"', 'TheZ="1.5"', "Plane TheZ is '1.5', not an integer"),
+    ('TheZ="1"', 'TheZ="x"', "Plane TheZ is 'x', not a number"),
     ('&quot;shape&quot;: [3, 4, 5]', '&quot;shape&quot;: &quot;345&quot;', "has shape '345', not a list of positive integers"),
     ('&quot;shape&quot;: [3, 4, 5]', '&quot;shape&quot;: [3, 4, true]', "not a list of positive integers")])
 def test_ome_metadata_of_the_wrong_type_is_a_one_line_error(tmp_path, old, new, msg):
@@ -153,6 +154,46 @@ def test_ome_metadata_of_the_wrong_type_is_a_one_line_error(tmp_path, old, new, 
         with pytest.raises(InputError) as info:
             read(p)
         assert msg in str(info.value) and "v.ome.tif" in str(info.value) and "\n" not in str(info.value)
+
+
+def test_a_plane_index_too_long_for_a_machine_integer_leaves_the_depths_unknown(tmp_path):
+    """Issue 27 F6: TheZ = 10^22 was a TypeError; it is read exactly and, as any TheZ that does not number
+    the planes 0..n-1, leaves the depths unknown (the voxel sizes still read)."""
+    p = tmp_path / "v.ome.tif"
+    write_tiff(p, np.ones((3, 4, 5), np.float32), voxel_size_um=(10.0, 2.0, 2.0), depths_um=[0.0, 10.0, 20.0])
+    with tifffile.TiffFile(p) as tf:
+        xml = tf.pages[0].description
+    tifffile.tiffcomment(p, xml.replace('TheZ="1"', 'TheZ="99999999999999999999999"', 1).encode("utf-8"))
+    _, m = read_tiff(p)
+    assert m["depths_um"] is None and m["voxel_size_um"] == pytest.approx((10.0, 2.0, 2.0))
+
+
+@pytest.mark.parametrize("record, msg", [
+    ({"voxel_size_um": "abc"}, "voxel_size_um must be numbers (dz, dy, dx), got 'abc'"),
+    ({"voxel_size_um": [1, "x", 2]}, "voxel_size_um must be numbers (dz, dy, dx), got [1, 'x', 2]"),
+    ({"voxel_size_um": 5}, "voxel_size_um must be numbers (dz, dy, dx), got 5"),
+    ({"voxel_size_um": [1, 2]}, "voxel_size_um must be (dz, dy, dx) for a 3D array"),
+    ({"voxel_size_um": [10, -2, 2]}, "voxel sizes must be positive and finite"),
+    ({"voxel_size_um": [10, 2, 2], "depths_um": "abc"}, "depths_um must be numbers, got 'abc'"),
+    ({"voxel_size_um": [10, 2, 2], "depths_um": [0, 1]}, "2 depths for 3 planes"),
+    ({"extra": [1, 2]}, "has extra list, not a mapping")])
+def test_a_legacy_record_of_the_wrong_type_is_a_one_line_error(tmp_path, record, msg):
+    """Issue 27 F7: a plain TIFF whose cm2cl record (what cm2cl < 0.2 wrote in the ImageDescription) holds
+    voxel sizes, depths or extra of the wrong type was a traceback; it is one line naming the file."""
+    import json
+
+    p = tmp_path / "legacy.tif"
+    tifffile.imwrite(p, np.ones((3, 4, 5), np.float32), description=json.dumps({"cm2cl": "0.1", **record}),
+                     photometric="minisblack")
+    with pytest.raises(InputError) as info:
+        read_tiff(p)
+    assert msg in str(info.value) and "legacy.tif': its cm2cl record" in str(info.value)
+    assert "\n" not in str(info.value)
+    tifffile.imwrite(p, np.ones((3, 4, 5), np.float32), description=json.dumps(
+        {"cm2cl": "0.1", "voxel_size_um": [10, 2, 2], "depths_um": [0, 10, 20], "extra": {"k": 1}}),
+        photometric="minisblack")
+    _, m = read_tiff(p)                                 # a good one still reads
+    assert m["voxel_size_um"] == (10.0, 2.0, 2.0) and m["depths_um"] == [0.0, 10.0, 20.0] and m["extra"] == {"k": 1}
 
 
 def test_ome_image_and_channel_are_named(rt, tmp_path):

@@ -78,7 +78,10 @@ def fit_lateral(a, shape, axis=None, name: str = "psf"):
     dst = tuple(int(n) for n in shape)
     if len(dst) != 2 or min(dst) < 1:
         raise InputError(f"{name}: the target lateral shape must be two positive sizes, got {shape!r}")
-    ax = (src[0] // 2, src[1] // 2) if axis is None else tuple(int(round(float(v))) for v in axis)
+    try:
+        ax = (src[0] // 2, src[1] // 2) if axis is None else tuple(int(round(float(v))) for v in axis)
+    except (TypeError, ValueError, OverflowError):
+        raise InputError(f"{name}: optical axis {axis!r} is not a (row, col) pair of finite numbers") from None
     if len(ax) != 2 or not (0 <= ax[0] < src[0] and 0 <= ax[1] < src[1]):
         raise InputError(f"{name}: optical axis {axis!r} (row, col) is outside its {src[0]} x {src[1]} pixels")
     off = (dst[0] // 2 - ax[0], dst[1] // 2 - ax[1])

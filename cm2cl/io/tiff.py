@@ -53,30 +53,41 @@ def tiff_stem(path) -> Path:
     return p
 
 
-def _check_geometry(path, a, voxel_size_um, depths_um):
-    """(dz, dy, dx) or (dy, dx) floats or None, depths list or None; InputError on bad values."""
+def _check_geometry(where: str, a, voxel_size_um, depths_um):
+    """(dz, dy, dx) or (dy, dx) floats or None, depths list or None; InputError starting with ``where``
+    (what is written or read) on bad values."""
     vs = None
     if voxel_size_um is not None:
         try:
             vs = [float(v) for v in voxel_size_um]
         except (TypeError, ValueError):
-            raise InputError(f"write_tiff '{path}': voxel_size_um must be numbers (dz, dy, dx), "
-                             f"got {voxel_size_um!r}") from None
+            raise InputError(f"{where}: voxel_size_um must be numbers (dz, dy, dx), got {voxel_size_um!r}") from None
         if len(vs) not in (2, 3) or (a.ndim == 3 and len(vs) != 3):
-            raise InputError(f"write_tiff '{path}': voxel_size_um must be (dz, dy, dx) for a {a.ndim}D array, "
+            raise InputError(f"{where}: voxel_size_um must be (dz, dy, dx) for a {a.ndim}D array, "
                              f"got {voxel_size_um!r}")
         if any(not np.isfinite(v) or v <= 0 for v in vs):
-            raise InputError(f"write_tiff '{path}': voxel sizes must be positive and finite, got {voxel_size_um!r}")
+            raise InputError(f"{where}: voxel sizes must be positive and finite, got {voxel_size_um!r}")
         vs = vs[-a.ndim:]
     depths = None
     if depths_um is not None:
-        depths = [float(d) for d in np.atleast_1d(np.asarray(depths_um, dtype=float))]
+        try:
+            depths = [float(d) for d in np.atleast_1d(np.asarray(depths_um, dtype=float))]
+        except (TypeError, ValueError):
+            raise InputError(f"{where}: depths_um must be numbers, got {depths_um!r}") from None
         nz = a.shape[0] if a.ndim == 3 else 1
         if len(depths) != nz:
-            raise InputError(f"write_tiff '{path}': {len(depths)} depths for {nz} planes")
+            raise InputError(f"{where}: {len(depths)} depths for {nz} planes")
         if not all(np.isfinite(depths)):
-            raise InputError(f"write_tiff '{path}': depths_um must be finite")
+            raise InputError(f"{where}: depths_um must be finite")
     return vs, depths
+
+
+def _record_extra(where: str, record) -> dict:
+    """The ``extra`` mapping of a cm2cl record read back (empty when absent)."""
+    extra = (record or {}).get("extra") or {}
+    if not isinstance(extra, dict):
+        raise InputError(f"{where} has extra {type(extra).__name__}, not a mapping")
+    return extra
 
 
 def write_tiff(path, array, voxel_size_um=None, depths_um=None, extra=None, name=None, channel=None,
@@ -100,7 +111,7 @@ def write_tiff(path, array, voxel_size_um=None, depths_um=None, extra=None, name
     a = np.asarray(array)
     if a.ndim not in (2, 3) or a.size == 0:
         raise InputError(f"write_tiff '{path}': expected a non-empty 2D or 3D array, got shape {a.shape}")
-    vs, depths = _check_geometry(path, a, voxel_size_um, depths_um)
+    vs, depths = _check_geometry(f"write_tiff '{path}'", a, voxel_size_um, depths_um)
     record = {_KEY: __import__("cm2cl").__version__, "shape": list(a.shape), "dtype": str(a.dtype),
               "voxel_size_um": vs, "unit": "um" if vs else "pixel", "depths_um": depths,
               "extra": jsonable(extra or {})}
@@ -144,11 +155,18 @@ class _BadOME(ValueError):
 def _num(value, what: str, kind=float):
     """``value`` (an OME attribute) as a finite ``kind``, or _BadOME naming ``what``."""
     try:
-        v = kind(value)
+        v = float(value)
     except (TypeError, ValueError):
         raise _BadOME(f"{what} is {value!r}, not a number") from None
     if not np.isfinite(v):
         raise _BadOME(f"{what} is {value!r}, not a finite number")
+    if kind is int:
+        if not v.is_integer():
+            raise _BadOME(f"{what} is {value!r}, not an integer")
+        try:
+            return int(value)             # exact, however long
+        except ValueError:
+            return int(v)                 # '2.0', '1e3'
     return v
 
 
@@ -308,9 +326,7 @@ def read_tiff(path, memmap: bool = False):
     if ome:
         arr = arr.reshape(_recorded_shape(path, ome, arr.shape))   # axes of length 1 that tifffile dropped
         vs, depths, record = _geometry(path, ome, arr.ndim)
-        extra = (record or {}).get("extra") or {}
-        if not isinstance(extra, dict):
-            raise InputError(f"'{path}': the cm2cl record in its OME-XML has extra {type(extra).__name__}, not a mapping")
+        extra = _record_extra(f"'{path}': the cm2cl record in its OME-XML", record)
         return arr, {"voxel_size_um": vs, "unit": "um" if vs else "pixel", "depths_um": depths, "extra": extra}
     record = None
     for text in (ij.get("Info"), desc):           # ImageJ hyperstacks written by cm2cl < 0.2
@@ -323,11 +339,11 @@ def read_tiff(path, memmap: bool = False):
                 record = cand
                 break
     if record is not None:
-        vs = record.get("voxel_size_um")
-        vs = tuple(float(v) for v in vs) if vs else None
+        where = f"'{path}': its cm2cl record"
+        vs, depths = _check_geometry(where, arr, record.get("voxel_size_um") or None, record.get("depths_um"))
         unit = record.get("unit", "um") if vs else "pixel"
-        return arr, {"voxel_size_um": vs, "depths_um": record.get("depths_um"), "unit": unit,
-                     "extra": record.get("extra") or {}}
+        return arr, {"voxel_size_um": tuple(vs) if vs else None, "depths_um": depths, "unit": unit,
+                     "extra": _record_extra(where, record)}
     vs = None
     if len(res) == 2 and res[0] > 0 and res[1] > 0:
         if ij:
