@@ -426,6 +426,40 @@ def test_broken_store_metadata_and_overlong_names_get_one_line(rt, tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == listing
 
 
+@pytest.mark.parametrize("key, value, said", [
+    (("cm2cl", "display_max"), "x", "cm2cl.display_max is 'x', not a finite number"),
+    (("cm2cl", "display_max"), [1], "cm2cl.display_max is [1], not a finite number"),
+    (("omero", "channels"), "x", "omero.channels is 'x', not a list of channel mappings"),
+    (("omero", "channels"), ["x"], "omero.channels is ['x'], not a list of channel mappings"),
+    (("omero",), 7, "omero is 7, not a mapping")])
+def test_store_attributes_of_the_wrong_type_are_refused_before_any_work(rt, tmp_path, capsys, key, value, said):
+    """Issue 27 F2: a store whose display window attributes were edited to the wrong type failed with a
+    traceback after the solve (at close); the resume is refused in one line naming the attribute, before
+    any frame is computed, and leaves no lock."""
+    import shutil
+    from cm2cl.cli import main
+
+    _series(tmp_path, n=2)
+    good, out = tmp_path / "good.ome.zarr", tmp_path / "o.ome.zarr"
+    argv = ["reconstruct", str(tmp_path / "series.tif"), "--psf", str(tmp_path / "psf.ome.tif"), *ARGS]
+    assert main(argv + ["-o", str(good)]) == 0
+    shutil.copytree(good, out)
+    shutil.copytree(tmp_path / ".good.ome.zarr.cm2cl-done", tmp_path / ".o.ome.zarr.cm2cl-done")
+    (tmp_path / ".o.ome.zarr.cm2cl-done" / "00000001").unlink()
+    attrs = json.loads((out / ".zattrs").read_text())
+    node = attrs
+    for k in key[:-1]:
+        node = node[k]
+    node[key[-1]] = value
+    (out / ".zattrs").write_text(json.dumps(attrs))
+    capsys.readouterr()
+    assert main(argv + ["-o", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert said in err and "o.ome.zarr" in err and len(err.strip().splitlines()) == 1, err
+    assert sorted(p.name for p in (tmp_path / ".o.ome.zarr.cm2cl-done").iterdir()) == ["00000000"]
+    assert not (tmp_path / ".o.ome.zarr.cm2cl-lock").exists()
+
+
 def test_a_nan_frame_is_named_with_its_file(rt, tmp_path):
     """A series whose second frame holds NaN stops in one line naming that frame, its file and page;
     the first frame stays done and resumable."""

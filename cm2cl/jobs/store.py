@@ -83,6 +83,29 @@ def _levels_of(meta: dict, path) -> int:
     return v
 
 
+def _check_window_attrs(attrs: dict, path) -> None:
+    """What :meth:`FrameStore._widen_window` reads at close, checked when a store is opened for writing:
+    ``cm2cl.display_max`` a finite number >= 0 and the ``omero`` block (under ``ome`` in NGFF 0.5) a mapping
+    whose ``channels`` is a list of mappings (else the job would fail after its solve)."""
+    def bad(name, value, want):
+        text = repr(value)
+        raise InputError(f"output '{path}': its attribute {name} is {text[:60]}{'...' if len(text) > 60 else ''}, "
+                         f"not {want}; correct it in the store's attributes or choose a new output")
+
+    dm = (attrs.get("cm2cl") or {}).get("display_max")
+    if dm is not None and (isinstance(dm, bool) or not isinstance(dm, (int, float)) or not np.isfinite(dm) or dm < 0):
+        bad("cm2cl.display_max", dm, "a finite number >= 0")
+    where = "ome.omero" if isinstance(attrs.get("ome"), dict) else "omero"
+    block = (attrs["ome"] if where == "ome.omero" else attrs).get("omero")
+    if block is None:
+        return
+    if not isinstance(block, dict):
+        bad(where, block, "a mapping")
+    chans = block.get("channels")
+    if chans is not None and not (isinstance(chans, list) and all(isinstance(c, dict) for c in chans)):
+        bad(f"{where}.channels", chans, "a list of channel mappings")
+
+
 def downsample(vol: np.ndarray) -> np.ndarray:
     """A (z, y, x) volume 2x coarser laterally: each pixel the mean of 2 x 2 (an odd last row or column
     averaged with its copy)."""
@@ -235,6 +258,7 @@ class FrameStore:
                              f"{type(exc).__name__}: {str(exc)[:120]}); not overwritten") from exc
         if not isinstance(meta, dict) or not hasattr(arr, "shape"):
             raise InputError(f"output '{path}': exists and is not a cm2cl OME-Zarr store; not overwritten")
+        _check_window_attrs(dict(g.attrs), path)
         if meta.get("fingerprint") != fingerprint:
             raise InputError(f"output '{path}': holds another job (different PSF, parameters or frames); "
                              "refusing to mix results: choose a new output")
