@@ -164,11 +164,13 @@ def normalise_configs(configs) -> dict:
 
 # ------------------------------------------------------------------------------------------------ running
 def residual(psf, y, rec) -> float:
-    """||C H x - y|| / ||y|| in float64 with the PSF the reconstruction was given (plus the reconstruction's
-    own 2D background estimate, ``rec.background``, where it has one)."""
+    """||C H x - y|| / ||y|| in float64 with the PSF the final solve used (the given one, or the refined one
+    ``rec.psf`` after a PSF refinement), plus the reconstruction's own 2D background estimate,
+    ``rec.background``, where it has one."""
     from cm2cl import reference
 
-    yh = reference.forward(psf, rec.volume_padded, rec.volume_padded.shape[1:])
+    h = rec.psf if getattr(rec, "psf", None) is not None else psf
+    yh = reference.forward(h, rec.volume_padded, rec.volume_padded.shape[1:])
     b = getattr(rec, "background", None)
     if isinstance(b, np.ndarray) and b.shape == yh.shape:
         yh = yh + b

@@ -185,7 +185,12 @@ def apply_kernels(psf: np.ndarray, labels: np.ndarray, kernels: np.ndarray, dept
         for i in range(psf.shape[0]):
             out[i] += signal.fftconvolve(hj[i], np.tensordot(W[:, i], kj, axes=(0, 0)), mode="same")
     out = np.maximum(out, 0.0)
-    return out * (psf.sum() / max(out.sum(), 1e-300))
+    # each plane keeps the given plane's light: a plane's overall scale and its volume's brightness trade
+    # one for the other in the data, so the kernels' gains are free there (they drifted, and a plane's
+    # faint beads dimmed below a detection threshold); the lenslets' gains relative to each other stay
+    have = out.reshape(out.shape[0], -1).sum(axis=1)
+    want = psf.reshape(psf.shape[0], -1).sum(axis=1)
+    return out * np.where(have > 0, want / np.where(have > 0, have, 1.0), 0.0)[:, None, None]
 
 
 def kernel_summary(kernels: np.ndarray) -> list[dict]:
