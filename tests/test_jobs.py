@@ -460,6 +460,71 @@ def test_store_attributes_of_the_wrong_type_are_refused_before_any_work(rt, tmp_
     assert not (tmp_path / ".o.ome.zarr.cm2cl-lock").exists()
 
 
+def test_an_immutable_store_is_refused_before_any_work(rt, tmp_path, capsys):
+    """Issue 27 F3: a store that cannot be written (root ignores chmod; the immutable flag stops it) failed
+    with a PermissionError traceback after the first frame's solve; the resume is refused in one line
+    before any work, saying the frames are kept, and leaves no lock."""
+    import shutil
+    from cm2cl.cli import main
+
+    _series(tmp_path, n=2)
+    out = tmp_path / "o.ome.zarr"
+    argv = ["reconstruct", str(tmp_path / "series.tif"), "--psf", str(tmp_path / "psf.ome.tif"), "-o", str(out), *ARGS]
+    assert main(argv) == 0
+    (tmp_path / ".o.ome.zarr.cm2cl-done" / "00000001").unlink()
+    if shutil.which("chattr") is None or subprocess.run(["chattr", "-R", "+i", str(out)]).returncode != 0:
+        pytest.skip("needs chattr +i (root, a file system with the immutable flag)")
+    try:
+        capsys.readouterr()
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert "cannot be written" in err and "frames it holds are kept" in err and "o.ome.zarr" in err
+        assert len(err.strip().splitlines()) == 1, err
+        assert sorted(p.name for p in (tmp_path / ".o.ome.zarr.cm2cl-done").iterdir()) == ["00000000"]
+        assert not (tmp_path / ".o.ome.zarr.cm2cl-lock").exists()
+    finally:
+        subprocess.run(["chattr", "-R", "-i", str(out)])
+
+
+def test_a_write_that_fails_during_a_job_is_one_line_and_marks_nothing(rt, tmp_path, caplog):
+    """Issue 27 F3: a chunk or marker that cannot be written once the job runs (disk full, the store made
+    read-only meanwhile) is a JobError naming the store and the frame and saying how to resume; the frame is
+    not marked done. A display window that cannot be updated at close is a warning: the frames are done."""
+    import errno
+    from cm2cl.errors import JobError
+    from cm2cl.jobs import FrameStore
+
+    out = tmp_path / "w.ome.zarr"
+
+    class Full:
+        def __init__(self, a):
+            self.a, self.shape, self.dtype = a, a.shape, a.dtype
+
+        def __getitem__(self, k):
+            return self.a[k]
+
+        def __setitem__(self, k, v):
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+    with FrameStore.open(out, fingerprint="f", n_frames=2, volume_shape=(2, 4, 4), dtype=np.float32) as store:
+        store.write(0, np.ones((2, 4, 4)))
+        real = store.array
+        store.array = Full(real)
+        with pytest.raises(JobError, match=r"output '.*w.ome.zarr': frame 1 could not be written \(No space left "
+                                           r"on device\); the frames finished before it are kept: rerun the same "
+                                           r"command"):
+            store.write(1, np.ones((2, 4, 4)))
+        store.array = real
+        assert store.done() == {0}
+
+        def refuse():
+            raise PermissionError(errno.EPERM, "Operation not permitted")
+
+        store._widen_window = refuse
+    assert "display window could not be updated (Operation not permitted)" in caplog.text
+    assert not (tmp_path / ".w.ome.zarr.cm2cl-lock").exists()
+
+
 def test_a_nan_frame_is_named_with_its_file(rt, tmp_path):
     """A series whose second frame holds NaN stops in one line naming that frame, its file and page;
     the first frame stays done and resumable."""

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import InputError, JobError
 from ..io.publish import check_name_length, exclusive_lock, fault_point, release_lock
 
 #: the job's bookkeeping lives beside the store, outside the zarr hierarchy (zarr warns about anything in it
@@ -288,11 +288,30 @@ class FrameStore:
             release_lock(fd, lock_path(path))
             raise InputError(f"output '{path}': its folder cannot be written ({exc.strerror or exc})") from exc
         store = cls(path, arr, fd, coarse)
+        try:
+            store._check_writable(levels)
+        except InputError:
+            release_lock(fd, lock_path(path))
+            raise
         for i in store.verify():      # a lost or overwritten chunk: its frame is computed again
             log.warning("output '%s': frame %d does not match its checksum; it is computed again", path, i)
             (done_dir(path) / f"{i:08d}").unlink()
             store.recomputed.append(i)
         return store
+
+    def _check_writable(self, levels: int) -> None:
+        """A file made and removed where a run writes (the store's folder for its attributes, each level's
+        array folder for its chunks, the job record for its markers): a store that cannot be written (read
+        only, immutable) is refused before any frame is solved, not after the first one."""
+        for d in [self.path, *(self.path / str(k) for k in range(levels)), done_dir(self.path)]:
+            probe = d / f".cm2cl-write-probe.{os.getpid()}"
+            try:
+                probe.write_bytes(b"")
+                probe.unlink()
+            except OSError as exc:
+                raise InputError(f"output '{self.path}': cannot be written ({exc.strerror or exc}: '{d}'); the "
+                                 "frames it holds are kept: resume it where it can be written (the same command), "
+                                 "or choose a new output") from exc
 
     @property
     def n_frames(self) -> int:
@@ -336,22 +355,27 @@ class FrameStore:
 
         vol = np.asarray(volume, self.array.dtype)
         info = {**(info or {}), "sha256": digest(vol, self.array.dtype)}
-        self.array[int(i)] = vol
-        coarse = vol
-        sums = []
-        for a in self.levels:               # the pyramid, level by level, before the frame counts as done
-            coarse = downsample(coarse).astype(a.dtype)
-            a[int(i)] = coarse
-            sums.append(digest(coarse, a.dtype))
-        if sums:
-            info["sha256_levels"] = sums
-        if vol.size:
-            self._vmax = max(self._vmax, float(np.nanmax(vol)))
-        fault_point(f"after_chunk.{int(i)}")   # tests: kill -9 between chunk and mark
-        d = done_dir(self.path)
-        tmp = d / f".{int(i):08d}.{os.getpid()}.{threading.get_ident()}"
-        tmp.write_text(json.dumps(info))
-        os.replace(tmp, d / f"{int(i):08d}")
+        try:
+            self.array[int(i)] = vol
+            coarse = vol
+            sums = []
+            for a in self.levels:               # the pyramid, level by level, before the frame counts as done
+                coarse = downsample(coarse).astype(a.dtype)
+                a[int(i)] = coarse
+                sums.append(digest(coarse, a.dtype))
+            if sums:
+                info["sha256_levels"] = sums
+            if vol.size:
+                self._vmax = max(self._vmax, float(np.nanmax(vol)))
+            fault_point(f"after_chunk.{int(i)}")   # tests: kill -9 between chunk and mark
+            d = done_dir(self.path)
+            tmp = d / f".{int(i):08d}.{os.getpid()}.{threading.get_ident()}"
+            tmp.write_text(json.dumps(info))
+            os.replace(tmp, d / f"{int(i):08d}")
+        except OSError as exc:   # the disk full, the store made read-only during the job, ...
+            raise JobError(f"output '{self.path}': frame {int(i)} could not be written ({exc.strerror or exc}); "
+                           "the frames finished before it are kept: rerun the same command, where the store can "
+                           "be written, to resume") from exc
 
     def info(self, i: int) -> dict:
         """The summary recorded with frame ``i`` when it was marked done."""
@@ -364,6 +388,9 @@ class FrameStore:
         if self._lock is not None:
             try:
                 self._widen_window()
+            except OSError as exc:     # the frames are all stored and marked; only the viewers' contrast is stale
+                log.warning("output '%s': its display window could not be updated (%s); the frames written are "
+                            "complete", self.path, exc.strerror or exc)
             finally:
                 release_lock(self._lock, lock_path(self.path))
                 self._lock = None
