@@ -25,12 +25,12 @@ def command(args) -> int:
     bad = store.verify(done)
     unchecked = sum(1 for i in done if i not in bad and "sha256" not in _info(store, i))
     print(f"{args.store}: {len(done)} of {store.n_frames} frames done, {len(done) - len(bad) - unchecked} match their "
-          f"checksums" + (f", {unchecked} written without one (not checked)" if unchecked else "")
+          f"checksums" + (f", {unchecked} written without one (checked only to decode)" if unchecked else "")
           + (f", {len(bad)} do not" if bad else ""))
     if bad:
         shown = ", ".join(map(str, bad[:20])) + (", ..." if len(bad) > 20 else "")
-        print(f"cm2cl: error: store '{args.store}': frame(s) {shown} do not match their checksums (lost or "
-              "overwritten chunks); rerun the job's command to compute them again", file=sys.stderr)
+        print(f"cm2cl: error: store '{args.store}': frame(s) {shown} do not match their checksums or cannot be "
+              "decoded (lost or overwritten chunks); rerun the job's command to compute them again", file=sys.stderr)
         return 1
     return 0
 

@@ -328,7 +328,7 @@ class FrameStore:
         """The frames among ``frames`` (default: every one marked done) whose stored volume does not match
         the checksum in its marker, or cannot be read at all (a chunk deleted reads as zeros, one
         overwritten fails to decode or reads other values). Markers written before checksums were
-        recorded are trusted."""
+        recorded are trusted as long as their chunks decode."""
         bad = []
         for i in sorted(self.done() if frames is None else frames):
             try:
@@ -336,14 +336,13 @@ class FrameStore:
             except (ValueError, OSError, AttributeError):   # a marker that is not the JSON object written
                 bad.append(i)
                 continue
-            if want is None:
-                continue
             try:
                 got = digest(self.read(i), self.array.dtype)
                 levels = [digest(a[int(i)], a.dtype) for a in self.levels]
             except Exception:  # noqa: BLE001 - any failure to decode the chunk is a bad frame
-                got, levels = None, None
-            if got != want or (self.levels and levels != self.info(i).get("sha256_levels")):
+                bad.append(i)
+                continue
+            if want is not None and (got != want or (self.levels and levels != self.info(i).get("sha256_levels"))):
                 bad.append(i)
         return bad
 
@@ -382,7 +381,12 @@ class FrameStore:
         return json.loads((done_dir(self.path) / f"{int(i):08d}").read_text() or "{}")
 
     def read(self, i: int) -> np.ndarray:
-        return np.asarray(self.array[int(i)])
+        """Frame ``i``'s stored volume; a chunk that cannot be decoded is a one-line JobError."""
+        try:
+            return np.asarray(self.array[int(i)])
+        except Exception as exc:  # noqa: BLE001 - the codec's own errors (blosc's RuntimeError, ...)
+            raise JobError(f"output '{self.path}': frame {int(i)} cannot be read back ({type(exc).__name__}: "
+                           f"{str(exc)[:120]}); rerun the same command to check the store and recompute it") from exc
 
     def close(self) -> None:
         if self._lock is not None:
