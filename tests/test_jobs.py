@@ -230,6 +230,49 @@ def test_a_series_that_cannot_fit_is_refused_before_its_store_exists(rt, tmp_pat
     assert not out.exists() and not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
 
 
+def test_a_store_this_run_created_is_removed_when_the_job_fails_before_its_first_frame(tmp_path):
+    """Issue 27 F10/F11: a job that failed before any frame (its workers' devices cannot compile, a frame
+    too large for them) left an empty store and its job record. A store this run created and left without
+    a finished frame is removed; one with a finished frame, or one that existed before, is kept."""
+    from cm2cl.jobs import FrameStore
+
+    out, book = tmp_path / "e.ome.zarr", tmp_path / ".e.ome.zarr.cm2cl-done"
+    kw = dict(fingerprint="f", n_frames=2, volume_shape=(2, 4, 4), dtype=np.float32)
+    with pytest.raises(RuntimeError):
+        with FrameStore.open(out, **kw) as store:
+            assert store.created and out.is_dir() and book.is_dir()
+            raise RuntimeError("the workers' device cannot compile")
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
+    with pytest.raises(RuntimeError):
+        with FrameStore.open(out, **kw) as store:
+            store.write(0, np.ones((2, 4, 4)))
+            raise RuntimeError("stopped after a frame")
+    with FrameStore.open(out, **kw) as store:
+        assert not store.created and store.done() == {0}
+    (book / "00000000").unlink()
+    with pytest.raises(RuntimeError):
+        with FrameStore.open(out, **kw) as store:   # an existing store, even without frames, is not ours to remove
+            raise RuntimeError("again")
+    assert out.is_dir() and book.is_dir() and not (tmp_path / ".e.ome.zarr.cm2cl-lock").exists()
+
+
+def test_a_local_device_that_cannot_compile_is_refused_before_the_store(rt, tmp_path, capsys, monkeypatch):
+    """Issue 27 F11: a series on a device whose compiler cannot build (PyPI's PoCL 3.0 on an unknown CPU)
+    is refused by the compiler probe before the store exists, in one line naming the device."""
+    import cm2cl.device
+    from cm2cl.cli import main
+
+    _series(tmp_path, n=2)
+    monkeypatch.setattr(cm2cl.device, "compiler_works", lambda d: (False, "error: unknown target CPU 'generic'"))
+    out = tmp_path / "o.ome.zarr"
+    code = main(["reconstruct", str(tmp_path / "series.tif"), "--psf", str(tmp_path / "psf.ome.tif"), "-o", str(out),
+                 *ARGS])
+    err = capsys.readouterr().err
+    assert code == 2 and "its OpenCL compiler cannot build kernels (error: unknown target CPU 'generic')" in err
+    assert len(err.strip().splitlines()) == 1, err
+    assert not out.exists() and not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
+
+
 def test_sizes_below_a_byte_are_refused(rt, tmp_path, capsys):
     """--max-memory 0.5 and --host-memory 0.5 used to round to 0 bytes, which means no limit."""
     from cm2cl.cli import main

@@ -321,10 +321,18 @@ def executor_for(devices=(None,), scheduler=None, warm_start: bool = False) -> E
 
 
 def _check_devices(devices, dtype) -> None:
-    """Every device opens (an unknown one fails here) and, for float64, has fp64."""
-    from ..device import get_runtime
+    """Every device opens (an unknown one fails here), its compiler builds a trivial kernel (a device the
+    ``cm2cl devices`` table marks as not compiling fails here, before any output) and, for float64, it
+    has fp64."""
+    from ..device import compiler_works, get_runtime
+    from ..errors import DeviceError
 
     for d in devices:
         rt = get_runtime(d)
+        ok, reason = compiler_works(rt.device)
+        if not ok:
+            raise DeviceError(f"device '{rt.caps.name}': its OpenCL compiler cannot build kernels ({reason}); "
+                              "a device that cannot compile: docs/install.md, 'When you need Debian's "
+                              "pocl-opencl-icd'")
         if np.dtype(dtype) == np.float64:
             rt.check_dtype(np.dtype(dtype))

@@ -157,6 +157,8 @@ class FrameStore:
         self._vmax = 0.0
         #: frames marked done whose chunk failed its checksum when the store was reopened (now to recompute)
         self.recomputed: list[int] = []
+        #: whether this run created the store (a job that fails before its first frame removes it again)
+        self.created = False
 
     @classmethod
     def open(cls, path, *, fingerprint: str, n_frames: int, volume_shape, dtype, voxel_size_um=None,
@@ -187,6 +189,7 @@ class FrameStore:
                 raise InputError(f"output '{path}': cannot create folder '{path.parent}' ({exc.strerror or exc})") from exc
         check_name_length(path, [done_dir(path).name, lock_path(path).name])
         shape = (int(n_frames),) + tuple(int(n) for n in volume_shape)
+        created = False
         if not path.exists():
             tmp = path.with_name(f".{path.name}.partial-{os.getpid()}")
             shutil.rmtree(tmp, ignore_errors=True)
@@ -217,11 +220,14 @@ class FrameStore:
                 shutil.rmtree(book, ignore_errors=True)    # markers of a store that was deleted: not this one's
                 book.mkdir()
                 os.rename(tmp, path)
+                created = True
             except OSError as exc:
                 shutil.rmtree(tmp, ignore_errors=True)
                 if not path.exists():
                     raise InputError(f"output '{path}': cannot create the store ({exc.strerror or exc})") from exc
-        return cls._reopen(path, fingerprint, shape, levels, ngff)
+        store = cls._reopen(path, fingerprint, shape, levels, ngff)
+        store.created = created
+        return store
 
     @classmethod
     def open_readonly(cls, path) -> "FrameStore":
@@ -424,7 +430,13 @@ class FrameStore:
     def __enter__(self):
         return self
 
-    def __exit__(self, *exc):
+    def __exit__(self, exc_type, exc, tb):
+        if exc_type is not None and self.created and self._lock is not None and not self.done():
+            # the job failed before its first frame (a device that cannot compile, a frame too large for
+            # it): the empty store it made is removed, so nothing is left that looks like a job begun
+            self._vmax = 0.0
+            shutil.rmtree(self.path, ignore_errors=True)
+            shutil.rmtree(done_dir(self.path), ignore_errors=True)
         self.close()
 
 
