@@ -273,6 +273,18 @@ def test_a_local_device_that_cannot_compile_is_refused_before_the_store(rt, tmp_
     assert not out.exists() and not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
 
 
+def test_a_cluster_error_is_cut_at_a_space_and_marked():
+    """Issue 27 F9: the first line of a Dask failure was cut at 200 characters, mid-option ('-D FFT_')."""
+    from cm2cl.jobs.executors import _first_line
+
+    opts = " ".join(f"-D FFT_R{k}={k}" for k in range(60))
+    first = f"build failed (options {opts})"
+    line = _first_line(RuntimeError(first + "\nthe log"))
+    kept = line[:-len(" ...")]
+    assert len(line) <= 304 and line.endswith(" ...") and first.startswith(kept) and first[len(kept)] == " "
+    assert _first_line(RuntimeError("short\nsecond")) == "short"
+
+
 def test_sizes_below_a_byte_are_refused(rt, tmp_path, capsys):
     """--max-memory 0.5 and --host-memory 0.5 used to round to 0 bytes, which means no limit."""
     from cm2cl.cli import main

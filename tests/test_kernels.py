@@ -18,6 +18,24 @@ def test_build_failure_names_file_and_shows_log(rt, monkeypatch):
     assert "kernels/broken.cl" in str(err.value) and "undefined_name" in str(err.value)
 
 
+def test_a_build_failure_survives_dask_pickling_with_its_summary_first(rt, monkeypatch):
+    """Issue 27 F9: a Dask worker whose device cannot compile sent back a generic Exception (pyopencl's
+    error, chained to ours, holds an _ErrorRecord that cannot be pickled). The error carries no pyopencl
+    object, goes through Dask's own error message and back as itself, and its first line is the summary."""
+    pytest.importorskip("distributed")
+    from distributed.core import error_message
+    from distributed.protocol import pickle as dask_pickle
+
+    monkeypatch.setitem(kernels._SOURCES, "broken.cl", "__kernel void f(__global real_t *a) { a[0] = undefined_name; }")
+    with pytest.raises(KernelBuildError) as err:
+        kernels.program(rt, "broken.cl", np.float32)
+    e = err.value
+    assert e.__cause__ is None and e.__context__ is None
+    assert str(e).splitlines()[0] == e.summary and "undefined_name" in e.summary and "-D" not in e.summary
+    back = dask_pickle.loads(error_message(e)["exception"].data)   # what the worker sends the client
+    assert type(back) is KernelBuildError and back.summary == e.summary and back.log == e.log
+
+
 def test_no_fast_math(rt, monkeypatch):
     """Programs are built without fast-math: the options handed to the compiler carry none, and a
     kernel built through the loader still sees NaN (finite-math-only would fold isnan to false)."""

@@ -96,9 +96,12 @@ def program(rt, name: str, dtype, defines: dict | None = None):
         try:
             return cl.Program(rt.context, text).build(options=opts)
         except cl.RuntimeError as exc:  # build failure: pyopencl puts the log in the message
-            what = f"OpenCL build of {' + '.join('kernels/' + f for f in files)} failed on '{rt.caps.name}'"
-            raise KernelBuildError(f"{what} (options {' '.join(opts)}):\n{exc}",
-                                   summary=f"{what}: {first_error(str(exc))}", log=str(exc)) from exc
+            log = str(exc)
+        # raised outside the handler, so neither chained nor in the context: pyopencl's error holds an
+        # _ErrorRecord that cannot be pickled, and Dask pickles a worker's error with its cause and context
+        summary = (f"OpenCL build of {' + '.join('kernels/' + f for f in files)} failed on '{rt.caps.name}': "
+                   f"{first_error(log)}")
+        raise KernelBuildError(f"{summary}\n(options {' '.join(opts)})\n{log}", summary=summary, log=log)
 
     return rt.cached(("program", files, tuple(opts)), build)
 

@@ -303,9 +303,14 @@ def _lost_data(exc) -> bool:
         exc, (asyncio.CancelledError, concurrent.futures.CancelledError))
 
 
-def _first_line(exc) -> str:
+def _first_line(exc, limit: int = 300) -> str:
+    """The first line of an error's message, cut (at a space, marked '...') when longer than ``limit``."""
     text = str(exc).strip().splitlines()
-    return (text[0] if text else "")[:200]
+    line = text[0] if text else ""
+    if len(line) <= limit:
+        return line
+    cut = line.rfind(" ", 0, limit)
+    return line[:cut if cut > limit // 2 else limit].rstrip() + " ..."
 
 
 def executor_for(devices=(None,), scheduler=None, warm_start: bool = False) -> Executor:
