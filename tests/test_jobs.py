@@ -285,6 +285,39 @@ def test_a_cluster_error_is_cut_at_a_space_and_marked():
     assert _first_line(RuntimeError("short\nsecond")) == "short"
 
 
+def test_dask_logs_are_silenced_while_the_job_holds_a_client_it_made():
+    """Issue 27 F8: a killed scheduler made distributed.client and distributed.core log some 30 lines of
+    tracebacks before the job's one line. While a job holds the client it made, distributed's loggers are
+    off (ours stay on) and they are back after; with a client the caller gave, the caller's logging holds."""
+    import logging
+
+    pytest.importorskip("distributed")
+    from cm2cl.jobs.executors import DaskCluster
+
+    seen = []
+
+    class Keep(logging.Handler):
+        def emit(self, record):
+            seen.append(record.getMessage())
+
+    h = Keep()
+    ours, theirs = logging.getLogger("cm2cl.test"), logging.getLogger("distributed.client")
+    for lg in (ours, theirs):
+        lg.addHandler(h)
+    try:
+        with DaskCluster("tcp://127.0.0.1:1").quiet():
+            theirs.error("Failed to reconnect to scheduler after 10.00 seconds, closing client")
+            logging.getLogger("distributed.core").error("Exception while handling op ...")
+            ours.warning("ours")
+        theirs.error("after the job")
+        with DaskCluster(object()).quiet():       # a client the caller gave
+            theirs.error("the caller's")
+    finally:
+        for lg in (ours, theirs):
+            lg.removeHandler(h)
+    assert seen == ["ours", "after the job", "the caller's"]
+
+
 def test_sizes_below_a_byte_are_refused(rt, tmp_path, capsys):
     """--max-memory 0.5 and --host-memory 0.5 used to round to 0 bytes, which means no limit."""
     from cm2cl.cli import main

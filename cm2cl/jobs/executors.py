@@ -6,6 +6,7 @@ is built once per (job, device) and reused for every frame it takes (its PSF spe
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import logging
 import queue
@@ -222,10 +223,17 @@ class DaskCluster:
             raise exc
         return box["client"]
 
+    def quiet(self):
+        """Dask's own loggers silenced while the job holds a client it made: a lost scheduler or worker made
+        distributed.client and distributed.core log tracebacks (some 30 lines) before the job's one line;
+        a client given by the caller keeps the caller's logging."""
+        return _silenced("distributed") if self.given is None else contextlib.nullcontext()
+
     def check(self, dtype) -> None:
-        c = self.client(5.0)
-        if self.given is None:
-            c.close()
+        with self.quiet():
+            c = self.client(5.0)
+            if self.given is None:
+                c.close()
 
     def in_flight(self, client) -> int:
         """How many frames are submitted at a time: IN_FLIGHT_PER_WORKER per worker, at least 2."""
@@ -236,6 +244,10 @@ class DaskCluster:
         return max(2, self.IN_FLIGHT_PER_WORKER * workers)
 
     def run(self, job: FrameJob, todo: list[int], finish: Finish, store) -> None:
+        with self.quiet():
+            self._run(job, todo, finish, store)
+
+    def _run(self, job: FrameJob, todo: list[int], finish: Finish, store) -> None:
         """Submit a bounded number of frames (:meth:`in_flight`), the next one as each finishes: a frame is
         read only when it is sent, so the client holds a few frames, not the series."""
         from distributed import as_completed
@@ -270,8 +282,9 @@ class DaskCluster:
                     tries[i] = tries.get(i, 0) + 1
                     if not _lost_data(exc) or tries[i] > self.RETRIES:
                         raise
-                    log.warning("Dask: frame %d lost its data with a worker (%s); the PSF is sent again and the frame "
-                                "resubmitted (%d of %d)", i, type(exc).__name__, tries[i], self.RETRIES)
+                    log.warning("Dask: frame %d was cancelled by the cluster (%s: a worker, or the scheduler, gone); "
+                                "the PSF is sent again and the frame resubmitted (%d of %d)", i, type(exc).__name__,
+                                tries[i], self.RETRIES)
                     box["psf"] = client.scatter(psf, broadcast=True)
                     submit(i)
                     continue
@@ -290,6 +303,21 @@ class DaskCluster:
         finally:
             if self.given is None:
                 client.close()
+
+
+@contextlib.contextmanager
+def _silenced(prefix: str):
+    """Every logger named ``prefix`` or below it disabled, then restored (those made meanwhile stay on)."""
+    names = [prefix] + [n for n in list(logging.root.manager.loggerDict) if n.startswith(prefix + ".")]
+    loggers = [logging.getLogger(n) for n in names]
+    saved = [lg.disabled for lg in loggers]
+    for lg in loggers:
+        lg.disabled = True
+    try:
+        yield
+    finally:
+        for lg, was in zip(loggers, saved):
+            lg.disabled = was
 
 
 def _lost_data(exc) -> bool:
