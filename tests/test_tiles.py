@@ -92,6 +92,14 @@ def test_planner_refuses_windows_that_lose_views():
         plan_tiles(M, psf, (reach[0] // 2, reach[1] // 2))    # the sensor's corner tiles: window < 2 reach + 1
     with pytest.raises(InputError, match="tile: expected two positive integers"):
         plan_tiles(M, psf, (0, 10))
+    # issue 27 F12: a PSF whose light spans the field (corners and centre) makes every window of 2 x 2
+    # tiles 94 of 96 px wide: each tile would solve about the whole frame
+    full = np.zeros((2, 96, 96))
+    full[:, [2, 2, 48, 93, 93], [2, 93, 48, 2, 93]] = 1.0
+    with pytest.raises(InputError, match=r"a window of 94 x 94 px \(tile \+ a halo of 46 x 46 px; the PSF reaches "
+                                         r"46 x 46 px from its axis\) covers nearly all of the 96 x 96 px field"):
+        plan_tiles((96, 96), full, (48, 48))
+    assert len(plan_tiles((96, 96), full, (96, 96)).tiles) == 1    # one tile is the whole frame: allowed
     with pytest.raises(InputError, match="padded_shape: not available with lateral tiles"):
         reconstruct_tiled(y, psf, (48, 60), padded_shape=(10, 10))
 

@@ -64,9 +64,15 @@ def _ranges(n: int, size: int) -> list[tuple[int, int]]:
     return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:])]
 
 
+#: more than one tile whose window (tile + halo) covers this fraction of the field or more is refused: each
+#: tile would solve about the whole frame (a PSF that spans the field), at the tiles' count times the work
+WINDOW_MAX_FRACTION = 0.9
+
+
 def plan_tiles(sensor, psf, tile, halo=None) -> TilePlan:
     """Tiles of about ``tile`` = (ty, tx) pixels covering ``sensor`` (equal sizes, at most ``tile``), each
-    with a measurement window reaching ``halo`` (default: the PSF's reach) beyond it."""
+    with a measurement window reaching ``halo`` (default: the PSF's reach) beyond it; refused when a window
+    is smaller than the PSF's spread or covers nearly the whole field (:data:`WINDOW_MAX_FRACTION`)."""
     try:
         ty, tx = (int(t) for t in tile)
     except (TypeError, ValueError):
@@ -91,6 +97,13 @@ def plan_tiles(sensor, psf, tile, halo=None) -> TilePlan:
         raise InputError(f"tile: a window of {b - a} x {d - c} px (tile + halo) is smaller than the PSF's spread "
                          f"({2 * ry + 1} x {2 * rx + 1} px): views would be lost; use tiles of at least "
                          f"{ry + 1} x {rx + 1} px or no tiles")
+    big = max(windows, key=lambda w: (w[0][1] - w[0][0]) * (w[1][1] - w[1][0]))
+    (a, b), (c, d) = big
+    if len(tiles) > 1 and (b - a) * (d - c) >= WINDOW_MAX_FRACTION * My * Mx:
+        raise InputError(f"tile: a window of {b - a} x {d - c} px (tile + a halo of {hy} x {hx} px; the PSF reaches "
+                         f"{ry} x {rx} px from its axis) covers nearly all of the {My} x {Mx} px field: the "
+                         f"{len(tiles)} tiles would each solve about the whole frame, saving no memory; run without "
+                         "tiles")
     fy, fx = max(1, min(hy, ty) // 4), max(1, min(hx, tx) // 4)
     return TilePlan((My, Mx), (ty, tx), (hy, hx), (ry, rx), (fy, fx), tiles, windows)
 
