@@ -384,9 +384,11 @@ def test_executors_are_chosen_by_the_job_and_checked_before_any_output(rt, tmp_p
     np.testing.assert_array_equal(vols[0], vols[1])
 
 
-def test_sigterm_stops_a_frame_cleanly_and_leaves_no_lock(rt, tmp_path):
-    """SIGTERM during a single frame's solve (a batch system stopping the job): exit 143 with one line that
-    says so, no output and no lock file left (it used to exit 143 silently and keep its lock)."""
+@pytest.mark.parametrize("sig, code", [("SIGTERM", 143), ("SIGHUP", 129)])
+def test_sigterm_stops_a_frame_cleanly_and_leaves_no_lock(rt, tmp_path, sig, code):
+    """SIGTERM during a single frame's solve (a batch system stopping the job), or SIGHUP (its terminal
+    closed; issue 27 X1): exit 143 / 129 with one line that says so, no output and no lock file left (both
+    used to exit silently and keep the lock)."""
     import signal
     import time
 
@@ -402,9 +404,9 @@ def test_sigterm_stops_a_frame_cleanly_and_leaves_no_lock(rt, tmp_path):
         time.sleep(0.05)
     assert lock.exists(), p.communicate()
     time.sleep(0.5)                                   # inside the solve
-    p.send_signal(signal.SIGTERM)
+    p.send_signal(getattr(signal, sig))
     _, err = p.communicate(timeout=60)
-    assert p.returncode == 143 and "terminated (SIGTERM)" in err and len(err.strip().splitlines()) == 1, err
+    assert p.returncode == code and f"terminated ({sig})" in err and len(err.strip().splitlines()) == 1, err
     assert not lock.exists() and not out.exists()
     assert sorted(q.name for q in tmp_path.iterdir()) == ["f.tif", "psf.ome.tif", "series.tif"]
 

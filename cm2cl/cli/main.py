@@ -68,12 +68,21 @@ def _registrars():
 
 
 class Terminated(BaseException):
-    """SIGTERM (a batch system's stop, ``kill``), raised in the main thread so that every ``finally`` and
-    ``with`` on the way out runs: staged outputs are dropped and locks released, as on Ctrl-C."""
+    """SIGTERM (a batch system's stop, ``kill``) or SIGHUP (the terminal closed), raised in the main thread
+    so that every ``finally`` and ``with`` on the way out runs: staged outputs are dropped and locks
+    released, as on Ctrl-C. ``signum``: the signal."""
+
+    def __init__(self, signum=signal.SIGTERM):
+        super().__init__(signum)
+        self.signum = signum
+
+
+#: the signals that stop a command as SIGTERM does (SIGHUP where the platform has it)
+STOP_SIGNALS = tuple(getattr(signal, n) for n in ("SIGTERM", "SIGHUP") if hasattr(signal, n))
 
 
 def _raise_terminated(signum, frame):
-    raise Terminated()
+    raise Terminated(signum)
 
 
 def _save_log(text: str) -> str:
@@ -92,9 +101,9 @@ def main(argv=None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 1
-    previous = None
+    previous = {}
     if threading.current_thread() is threading.main_thread():
-        previous = signal.signal(signal.SIGTERM, _raise_terminated)
+        previous = {sig: signal.signal(sig, _raise_terminated) for sig in STOP_SIGNALS}
     logger, handler, level = _log_handler(args)
     try:
         return int(args.func(args) or 0)
@@ -109,26 +118,26 @@ def main(argv=None) -> int:
         print("cm2cl: interrupted; nothing incomplete was written (a series resumes when the same command is run "
               "again)", file=sys.stderr)
         return 130
-    except Terminated:
-        print("cm2cl: terminated (SIGTERM); nothing incomplete was written (a series resumes when the same command "
-              "is run again)", file=sys.stderr)
-        return 143
+    except Terminated as exc:
+        print(f"cm2cl: terminated ({signal.Signals(exc.signum).name}); nothing incomplete was written (a series "
+              "resumes when the same command is run again)", file=sys.stderr)
+        return 128 + int(exc.signum)
     finally:
         logger.removeHandler(handler)
         logger.setLevel(level)
-        if previous is not None:
-            signal.signal(signal.SIGTERM, previous)
+        for sig, handler_before in previous.items():
+            signal.signal(sig, handler_before)
 
 
 def run() -> None:
-    """The console entry point: ``main``, then exit. After Ctrl-C or SIGTERM (everything cleaned up by
+    """The console entry point: ``main``, then exit. After Ctrl-C, SIGTERM or SIGHUP (everything cleaned up by
     then) it leaves without the interpreter's finalisation: with a solve's worker thread just stopped, the
     OpenCL runtime's teardown aborted the process ("terminate called without an active exception", exit
-    134) instead of the 130 / 143 that was printed."""
+    134) instead of the 130 / 143 / 129 that was printed."""
     import os
 
     code = main()
-    if code in (130, 143):
+    if code == 130 or code in (128 + int(sig) for sig in STOP_SIGNALS):
         sys.stdout.flush()
         sys.stderr.flush()
         os._exit(code)
