@@ -331,3 +331,22 @@ def test_dry_run_counts_the_presets_iterations(rt, tmp_path, capsys):
     assert "for 3000 iterations" in capsys.readouterr().out
     assert main(argv + ["--preset", "best", "--max-iter", "7"]) == 0
     assert "for 7 iterations" in capsys.readouterr().out
+
+
+def test_a_warning_has_one_cm2cl_prefix_and_v_names_the_module(capsys):
+    """Issue 27 nit: warnings read 'cm2cl: WARNING: cm2cl: ...'; at the default level the message follows
+    the level, and -v adds the module that logged it."""
+    import argparse
+    import logging
+
+    from cm2cl.cli.main import _log_handler
+
+    for verbose, want in ((0, "cm2cl: WARNING: frame 1 does not match\n"),
+                          (1, "cm2cl: WARNING: cm2cl.jobs.store: frame 1 does not match\n")):
+        logger, handler, level = _log_handler(argparse.Namespace(verbose=verbose, log_level=None))
+        try:
+            logging.getLogger("cm2cl.jobs.store").warning("frame 1 does not match")
+        finally:
+            logger.removeHandler(handler)
+            logger.setLevel(level)
+        assert capsys.readouterr().err == want

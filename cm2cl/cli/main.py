@@ -51,7 +51,10 @@ def _log_handler(args):
              else {0: logging.WARNING, 1: logging.INFO}.get(getattr(args, "verbose", 0), logging.DEBUG))
     logger = logging.getLogger("cm2cl")
     handler = logging.StreamHandler(sys.stderr)
-    handler.setFormatter(logging.Formatter("cm2cl: %(levelname)s: %(name)s: %(message)s"))
+    # the module that logs is named with -v / -vv; at the default level a warning reads "cm2cl: WARNING: ..."
+    # (it read "cm2cl: WARNING: cm2cl: ...")
+    handler.setFormatter(logging.Formatter("cm2cl: %(levelname)s: %(name)s: %(message)s" if level < logging.WARNING
+                                           else "cm2cl: %(levelname)s: %(message)s"))
     handler.setLevel(level)
     previous = logger.level
     logger.addHandler(handler)
