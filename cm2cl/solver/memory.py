@@ -95,6 +95,16 @@ def _of_host(rt) -> str:
     return " of host memory" if getattr(rt.caps, "kind", None) == "CPU" else ""
 
 
+def size_text(nbytes) -> str:
+    """A size for a message, in the unit that shows it with three significant digits (0.00 GiB said
+    nothing of a budget of a few KiB)."""
+    n = float(nbytes)
+    for unit, k in (("GiB", 2**30), ("MiB", 2**20), ("KiB", 2**10)):
+        if abs(n) >= k:
+            return f"{n / k:.3g} {unit}"
+    return f"{n:.0f} bytes"
+
+
 def check_fits(rt, nz, padded_shape, dtype, backend, max_memory=None):
     est = memory_estimate(nz, padded_shape, dtype, backend)
     budget = device_budget(rt, max_memory)
@@ -102,8 +112,8 @@ def check_fits(rt, nz, padded_shape, dtype, backend, max_memory=None):
         fit = max(0, (budget - est["fixed"]) // est["per_plane"])
         raise DeviceError(
             f"problem too large for device '{rt.caps.name}': {nz} planes on a "
-            f"{padded_shape[0]} x {padded_shape[1]} padded grid need {est['total'] / 2**30:.2f} GiB, "
-            f"the device offers {budget / 2**30:.2f} GiB; {fit} planes fit at this size "
+            f"{padded_shape[0]} x {padded_shape[1]} padded grid need {size_text(est['total'])}, "
+            f"the device offers {size_text(budget)}; {fit} planes fit at this size "
             "(stream depth slabs, spread them over devices, use fewer planes or bin the measurement)"
         )
     return est
@@ -228,8 +238,8 @@ def plan_layout(nz, padded_shape, dtype, backend, runtimes, *, max_memory=None, 
                                padded_shape, dtype, backend, scratch_per_plane, terms) for a, b in runs)
         raise DeviceError(
             f"problem too large to keep on the device{'s' if len(runtimes) > 1 else ''}: {nz} planes on a "
-            f"{padded_shape[0]} x {padded_shape[1]} padded grid need {need / 2**30:.2f} GiB per device, "
-            f"{min(budgets) / 2**30:.2f} GiB available{_of_host(runtimes[0])}; stream depth slabs from host memory "
+            f"{padded_shape[0]} x {padded_shape[1]} padded grid need {size_text(need)} per device, "
+            f"{size_text(min(budgets))} available{_of_host(runtimes[0])}; stream depth slabs from host memory "
             "instead")
     out = []
     for rt, (a, b), bud in zip(runtimes, runs, budgets):
@@ -237,8 +247,8 @@ def plan_layout(nz, padded_shape, dtype, backend, runtimes, *, max_memory=None, 
         if slab < 1:
             raise DeviceError(
                 f"problem too large even streamed: one depth plane of a {padded_shape[0]} x {padded_shape[1]} "
-                f"padded grid needs {(fixed + per) / 2**20:.2f} MiB on device '{rt.caps.name}', "
-                f"{bud / 2**20:.2f} MiB available{_of_host(rt)} (bin the measurement, use support padding or "
+                f"padded grid needs {size_text(fixed + per)} on device '{rt.caps.name}', "
+                f"{size_text(bud)} available{_of_host(rt)} (bin the measurement, use support padding or "
                 "lateral tiles)")
         slab = int(min(slab, b - a, max_slab_planes or slab))
         double = (bud - fixed) // (per + vols)   # planes per slab with a second set of slab buffers
