@@ -350,3 +350,22 @@ def test_a_warning_has_one_cm2cl_prefix_and_v_names_the_module(capsys):
             logger.removeHandler(handler)
             logger.setLevel(level)
         assert capsys.readouterr().err == want
+
+
+@pytest.mark.parametrize("delay", [0.15, 0.3])
+def test_ctrl_c_while_the_command_starts_is_one_line_and_130(delay):
+    """Ctrl-C while the modules load (numpy, OpenCL, the solver: about half a second) or just after: one line,
+    exit 130, no import's traceback (issue 27)."""
+    import signal
+    import subprocess
+    import time
+
+    p = subprocess.Popen([sys.executable, "-m", "cm2cl", "devices"], stdout=subprocess.DEVNULL,
+                         stderr=subprocess.PIPE, text=True)
+    time.sleep(delay)
+    p.send_signal(signal.SIGINT)
+    _, err = p.communicate(timeout=60)
+    if p.returncode == 0:
+        pytest.skip("the command finished before the signal")
+    assert p.returncode == 130 and "Traceback" not in err, err
+    assert len(err.strip().splitlines()) == 1 and "interrupted" in err

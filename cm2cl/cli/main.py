@@ -8,7 +8,6 @@ import sys
 import threading
 
 from ..errors import CM2Error, KernelBuildError
-from .options import flag_names, with_flags
 
 
 class _Parser(argparse.ArgumentParser):
@@ -19,6 +18,8 @@ class _Parser(argparse.ArgumentParser):
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from .options import flag_names
+
     p = _Parser(prog="cm2cl", description=__doc__)
     p.add_argument("--version", action="version", version=f"cm2cl {__import__('cm2cl').__version__}")
     sub = p.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
@@ -115,6 +116,8 @@ def main(argv=None) -> int:
               "cannot compile: docs/install.md, 'When you need Debian's pocl-opencl-icd'", file=sys.stderr)
         return 2
     except CM2Error as exc:
+        from .options import with_flags
+
         print(f"cm2cl: error: {with_flags(str(exc), getattr(args, 'flags', {}))}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
@@ -132,6 +135,28 @@ def main(argv=None) -> int:
             signal.signal(sig, handler_before)
 
 
+def _load_quietly() -> None:
+    """The sub-commands' modules (the solver, numpy, OpenCL: about half a second), loaded while Ctrl-C leaves
+    with one line and 130: an interrupt there gave an import's traceback. Nothing is written before."""
+    import os
+
+    def early(signum, frame):
+        sys.stderr.write("cm2cl: interrupted while starting; nothing was written\n")
+        sys.stderr.flush()
+        os._exit(130)
+
+    if threading.current_thread() is not threading.main_thread():
+        _registrars()
+        return
+    previous = signal.signal(signal.SIGINT, early)
+    try:
+        from . import options  # noqa: F401
+
+        _registrars()
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
 def run() -> None:
     """The console entry point: ``main``, then exit. After Ctrl-C, SIGTERM or SIGHUP (everything cleaned up by
     then) it leaves without the interpreter's finalisation: with a solve's worker thread just stopped, the
@@ -139,6 +164,7 @@ def run() -> None:
     134) instead of the 130 / 143 / 129 that was printed."""
     import os
 
+    _load_quietly()
     code = main()
     if code == 130 or code in (128 + int(sig) for sig in STOP_SIGNALS):
         sys.stdout.flush()
