@@ -285,7 +285,7 @@ def test_bad_scans_are_refused_in_one_line_and_write_nothing(tmp_path, capsys):
     tifffile.imwrite(tmp_path / "dark_small.tif", np.zeros((30, 30), np.uint16))
     zs = ["--z-start", "0", "--z-step", "10"]
     cases = [
-        ([str(shapes)] + zs, f"scan '{shapes / 'b.tif'}' (frame 0): shape (30, 40) differs from the first frame's"),
+        ([str(shapes)] + zs, f"scan '{shapes / 'b.tif'}' (frame 1 of the series, page 0 of the file): shape (30, 40) differs from the first frame's"),
         ([str(good), "--z-range", "0", "100"] + zs, "depth range [0, 100] um is outside the scan's [0, 40] um"),
         ([str(tmp_path / "empty")] + zs, f"scan '{tmp_path / 'empty'}': the folder holds no .tif/.tiff file"),
         ([str(tmp_path / "notes")] + zs, f"scan '{tmp_path / 'notes'}': the folder holds no .tif/.tiff file"),

@@ -88,9 +88,10 @@ class FrameSeries:
         if not self.frames:
             raise InputError(f"{what}: no frames in {', '.join(map(str, sources))}")
         first = self.frames[0]
-        for f in self.frames[1:]:
+        for t, f in enumerate(self.frames[1:], start=1):
             if f.shape != first.shape:
-                raise InputError(f"{what} '{f.path}' (frame {f.index}): shape {f.shape} differs from the "
+                raise InputError(f"{what} '{f.path}' (frame {t} of the series, page {f.index} of the file): shape "
+                                 f"{f.shape} differs from the "
                                  f"first frame's {first.shape} ('{first.path}'); one job takes frames of one shape")
         self.shape = first.shape
 
