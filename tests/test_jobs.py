@@ -66,6 +66,38 @@ def test_series_frames_equal_single_frame_solves_and_carry_the_scale(rt, tmp_pat
         np.testing.assert_array_equal(arr[t], one.volume)
 
 
+def test_series_refines_the_psf_on_its_first_frame_and_resumes_with_it(rt, tmp_path):
+    """--psf-refine on a series: the PSF is self-calibrated on frame 0 and kept as OUT.psf.ome.tif with the
+    job's fingerprint; every frame equals the single-frame solve with that stack (no refinement of its own);
+    a resumed job reads the stack back instead of refining again; with finished frames and the stack gone it
+    stops before any work."""
+    psf, frames = _series(tmp_path, n=3)
+    out, side = tmp_path / "r.ome.zarr", tmp_path / "r.psf.ome.tif"
+    refine = ("--psf-refine", "2", "--psf-refine-iter", "10")
+    r = _job(tmp_path, out, *refine)
+    assert r.returncode == 0, r.stderr
+    h, meta = cio.read_tiff(side)
+    assert h.dtype == np.float64 and h.shape == psf.shape and meta["extra"]["psf_refine"] == 2
+    assert not np.allclose(h / h.sum(), psf / psf.sum(), atol=1e-6)        # refined, not the given stack
+    one = cm2cl.reconstruct(frames[0], psf.astype(np.float32), max_iter=25, tol=0, psf_refine=2, psf_refine_iter=10)
+    np.testing.assert_array_equal(h, one.psf)                             # frame 0's refinement, bit for bit
+    arr = np.asarray(zarr.open_group(str(out), mode="r")["0"])
+    for t in (0, 2):
+        np.testing.assert_array_equal(arr[t], cm2cl.reconstruct(frames[t], h, max_iter=25, tol=0).volume)
+    # resume: frame 2 undone; the stack is read back (not written again), the frame comes back the same
+    (tmp_path / ".r.ome.zarr.cm2cl-done" / "00000002").unlink()
+    before = side.stat().st_mtime_ns
+    r = _job(tmp_path, out, *refine)
+    assert r.returncode == 0 and "read back" in r.stderr and "1 computed" in r.stdout, r.stderr
+    assert side.stat().st_mtime_ns == before
+    np.testing.assert_array_equal(np.asarray(zarr.open_group(str(out), mode="r")["0"])[2], arr[2])
+    side.unlink()
+    (tmp_path / ".r.ome.zarr.cm2cl-done" / "00000001").unlink()
+    r = _job(tmp_path, out, *refine)
+    assert r.returncode == 2 and "r.psf.ome.tif" in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert not side.exists()
+
+
 def test_series_with_support_padding_and_streamed_slabs(rt, tmp_path):
     """--padding support measures the PSF's support once for the whole series (each frame equals the
     single-frame solve with padding='support'); a device cap streams the slabs and changes no bit."""
@@ -200,7 +232,7 @@ def test_frames_of_files_with_singleton_axes_read_as_counted(tmp_path):
     (["--saturation", "1000"], "--saturation"), (["--tile", "32", "32"], "--tile"), (["--padded"], "--padded"),
     (["--save-background"], "--save-background"), (["--host-memory", "1G"], "--host-memory"),
     (["--background", "opening:10px"], "--background opening:R"), (["--background", "garbage"], "background"),
-    (["--camera", "gain=2,read-noise=1"], "--camera"), (["--psf-refine", "2"], "--psf-refine"),
+    (["--camera", "gain=2,read-noise=1"], "--camera"), (["--psf-refine", "2", "--padding", "support"], "--psf-refine"),
     (["--save-psf"], "--save-psf"), (["--emission-nm", "510"], "--emission-nm")])
 def test_series_refuses_the_frame_options_it_does_not_honour(rt, tmp_path, capsys, extra, flag):
     """A series job given an option it does not apply (issue 27: they used to change nothing) stops before

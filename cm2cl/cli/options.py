@@ -174,7 +174,8 @@ def add_output(r) -> None:
     g.add_argument("--save-psf", action="store_true",
                    help="with --psf-refine: also write the self-calibrated PSF stack the final solve used, on the "
                         "working grid (after --bin), next to the output (OUT.psf.ome.tif); give it as --psf of a "
-                        "series of the same sample")
+                        "series of the same sample. A series with --psf-refine refines on its first frame and "
+                        "always keeps that stack as OUT.psf.ome.tif (a resumed job reads it back)")
     g.add_argument("--dry-run", action="store_true",
                    help="print the plan (grid, device and host memory, whether it fits) from the TIFF headers, "
                         "solve and write nothing")

@@ -44,7 +44,6 @@ _FRAME_ONLY = (("--dry-run", lambda a: a.dry_run), ("--mask", lambda a: a.mask),
                ("--save-background", lambda a: a.save_background), ("--host-memory", lambda a: a.host_memory),
                ("--camera", lambda a: a.camera not in (None, "none")),
                ("--background opening:R", lambda a: a.background not in (None, "model", "none")),
-               ("--psf-refine", lambda a: a.psf_refine), ("--save-psf", lambda a: a.save_psf),
                ("--emission-nm", lambda a: a.emission_nm))
 
 
