@@ -40,6 +40,27 @@ def test_array_frames_equal_single_frame_solves_and_resume(rt, tmp_path):
         cm2cl.reconstruct_series(frames, psf, out, max_iter=26, tol=0.0)
 
 
+def test_psf_refine_refines_on_the_first_frame_and_solves_every_frame_with_it(rt, tmp_path):
+    """reconstruct_series(..., psf_refine=N): the stack refined on frame 0 (what reconstruct(frames[0], psf,
+    psf_refine=N) gives) is kept as OUT.psf.ome.tif and every frame is the plain solve with it."""
+    from cm2cl import io
+
+    psf, frames = _frames(tmp_path)
+    out = tmp_path / "p.ome.zarr"
+    s = cm2cl.reconstruct_series(frames, psf, out, psf_refine=2, psf_refine_iter=10, **KW)
+    assert s.computed == 3
+    h, meta = io.read_tiff(tmp_path / "p.psf.ome.tif")
+    np.testing.assert_array_equal(h, cm2cl.reconstruct(frames[0], psf, psf_refine=2, psf_refine_iter=10, **KW).psf)
+    vol = np.asarray(zarr.open_group(str(out), mode="r")["0"])
+    one = cm2cl.reconstruct(frames[2], h, **KW).volume
+    np.testing.assert_allclose(vol[2], one, rtol=1e-5, atol=1e-6 * one.max())
+    # with finished frames and the stack gone: refused, nothing solved
+    (tmp_path / "p.psf.ome.tif").unlink()
+    (out / "0" / "1" / "0" / "0" / "0").write_bytes(b"\0" * 50)
+    with pytest.raises(InputError, match="p.psf.ome.tif"):
+        cm2cl.reconstruct_series(frames, psf, out, psf_refine=2, psf_refine_iter=10, **KW)
+
+
 def test_file_frames_and_psf_path_label_the_store(rt, tmp_path):
     _frames(tmp_path)
     out = tmp_path / "new" / "f.ome.zarr"     # its missing folder is made
@@ -52,8 +73,7 @@ def test_file_frames_and_psf_path_label_the_store(rt, tmp_path):
 def test_bad_calls_are_refused_before_any_store(rt, tmp_path):
     psf, frames = _frames(tmp_path)
     out = tmp_path / "x.ome.zarr"
-    for kw, msg in ((dict(psf_refine=2), "psf_refine: not for a series"),
-                    (dict(client="tcp://127.0.0.1:9", warm_start=True), "client:"),
+    for kw, msg in ((dict(client="tcp://127.0.0.1:9", warm_start=True), "client:"),
                     (dict(l1=-1.0), "l1")):
         with pytest.raises(InputError, match=msg):
             cm2cl.reconstruct_series(frames, psf, out, **kw)

@@ -5,7 +5,6 @@ cluster (``--scheduler``); re-running the same command resumes a killed job. Cal
 
 from __future__ import annotations
 
-import os
 import sys
 import time
 from dataclasses import replace
@@ -58,6 +57,8 @@ def command(args, params: ADMMParams) -> int:
     record = {"what": "cm2cl reconstruction series", "psf": str(args.psf), "params": params.as_dict(),
               "frames": [f"{f.path}[{f.index}]" for f in series.frames[:1000]], "scale": wp.scale, "prep": prep}
     if params.psf_refine:
+        from ..jobs.refine import refined_psf_path
+
         record["psf_refined"] = str(refined_psf_path(out))
     t0 = time.perf_counter()
     frame_prep = lambda a: prepare(a, offset=off, bin_factor=args.bin, name="measurement")  # noqa: E731
@@ -86,50 +87,20 @@ def command(args, params: ADMMParams) -> int:
     return 0
 
 
-def refined_psf_path(out: Path) -> Path:
-    """Where a series with --psf-refine keeps the PSF stack its frames are solved with: OUT.psf.ome.tif."""
-    name = out.name
-    for suffix in (".ome.zarr", ".zarr"):
-        if name.lower().endswith(suffix):
-            name = name[: -len(suffix)]
-            break
-    return out.with_name(name + ".psf.ome.tif")
-
-
 def _refined(args, params, series, h, store, key, frame_prep, solver_kw, dt, wp):
-    """The PSF stack a series with --psf-refine solves every frame with: the given one self-calibrated on the
-    first frame (cm2cl.solver.psf_refine), written beside the store with the job's fingerprint. A resumed job
-    reads it back, so that every frame of the store is solved with the same stack; with finished frames and
-    no such file (deleted, or another job's) it stops before any work."""
-    from .. import io
-    from ..solver import reconstruct
+    """The PSF stack every frame is solved with under --psf-refine (:func:`cm2cl.jobs.refine.series_psf`)."""
+    from ..jobs.refine import refined_psf_path, series_psf
 
-    path = refined_psf_path(Path(args.output))
-    if path.exists():
-        psf, meta = io.read_tiff(path)
-        if (meta.get("extra") or {}).get("job") == key and psf.shape == h.shape:
-            print(f"cm2cl: note: the PSF refined on frame 0 is read back from '{path}'", file=sys.stderr)
-            return np.asarray(psf, np.float64)
-    if len(store.missing()) < len(series):
-        raise InputError(f"--psf-refine: '{path}', the refined PSF stack the finished frames of '{args.output}' "
-                         "were solved with, is missing or belongs to another job; put it back, or reconstruct "
-                         "into a new store")
     if not args.quiet:
-        print(f"cm2cl: refining the PSF on frame 0 ({params.psf_refine} rounds)", file=sys.stderr)
-    devs = devices_arg(args.device)
-    rec = reconstruct(frame_prep(series.read(0)), h, dtype=dt, backend=args.backend, device=devs[0],
-                      **solver_kw, **params.as_dict())
-    tmp = path.with_name(f".{path.name}.partial-{os.getpid()}.ome.tif")
-    try:
-        io.write_tiff(tmp, rec.psf, voxel_size_um=wp.voxel_size_um, depths_um=wp.depths_um,
-                      extra={"what": "PSF stack self-calibrated on frame 0 of the series (--psf-refine), working grid",
-                             "job": key, "psf": str(args.psf), "frame": f"{series.frames[0].path}[{series.frames[0].index}]",
-                             "psf_refine": rec.info["psf_refine"]["rounds"], "store": str(args.output)})
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-    return np.asarray(rec.psf, np.float64)
+        print(f"cm2cl: the PSF is refined on frame 0 ({params.psf_refine} rounds) unless '{refined_psf_path(args.output)}' "
+              "holds this job's", file=sys.stderr)
+    solve_kw = {"dtype": dt, "backend": args.backend, "device": devices_arg(args.device)[0], **solver_kw}
+    h, read_back = series_psf(args.output, key, series, h, store, frame_prep, params, solve_kw=solve_kw,
+                              voxel_size_um=wp.voxel_size_um, depths_um=wp.depths_um, psf_name=str(args.psf))
+    if read_back:
+        print(f"cm2cl: note: the PSF refined on frame 0 is read back from '{refined_psf_path(args.output)}'",
+              file=sys.stderr)
+    return h
 
 
 def _grid(args, h, off, psf_off, device):

@@ -2,7 +2,8 @@
 (:mod:`.frames`), an OME-Zarr output whose frames count as done only when wholly written, refused when it
 holds another job, and resumable (:mod:`.store`), the executors that run frames in order with a warm
 start, over the local OpenCL devices or on a Dask cluster, each device building its PSF spectra once
-(:mod:`.executors`, run by :mod:`.run`), and lateral tiles of one frame (:mod:`.tiles`)."""
+(:mod:`.executors`, run by :mod:`.run`), the PSF refined on a series' first frame (:mod:`.refine`), and
+lateral tiles of one frame (:mod:`.tiles`)."""
 
 from .executors import DaskCluster, FrameJob, InOrder, LocalDevices, executor_for
 from .frames import FrameSeries

@@ -48,8 +48,9 @@ def reconstruct_series(frames, psf, output, *, client=None, devices=None, warm_s
     padded_shape, max_memory, stream, lean, dtype, backend :
         As :func:`cm2cl.reconstruct`, for every frame.
     **params :
-        The solver's parameters, as :func:`cm2cl.reconstruct` (``psf_refine`` excepted: refine the PSF on
-        one frame, then give the series ``rec.psf``).
+        The solver's parameters, as :func:`cm2cl.reconstruct`. With ``psf_refine`` the PSF is refined on the
+        first frame and every frame solved with that stack, kept beside the store as ``OUT.psf.ome.tif``
+        (:mod:`cm2cl.jobs.refine`; a resumed job reads it back).
 
     Returns
     -------
@@ -60,9 +61,6 @@ def reconstruct_series(frames, psf, output, *, client=None, devices=None, warm_s
     or ``FrameStore.open_readonly(output)``; ``cm2cl verify`` checks it.
     """
     prm = check_keywords("reconstruct_series", params)
-    if prm.psf_refine:
-        raise InputError("psf_refine: not for a series; refine the PSF on one frame (cm2cl.reconstruct(..., "
-                         "psf_refine=N)) and give the series rec.psf")
     if client is not None and (warm_start or devices):
         raise InputError("client: the frames run on the cluster's workers; give client, or devices / warm_start")
     series = frames if isinstance(frames, (FrameSeries, ArraySeries)) else (
@@ -84,12 +82,21 @@ def reconstruct_series(frames, psf, output, *, client=None, devices=None, warm_s
               "frames": [f"{f.path}[{f.index}]" for f in series.frames[:1000]]}
     from ..io.prepare import prepare
 
+    frame_prep = lambda a: prepare(a, offset=offset, name="frame")  # noqa: E731
     with FrameStore.open(output, fingerprint=key, n_frames=len(series), volume_shape=h.shape, dtype=dt,
                          voxel_size_um=vs, depths_um=d, record=record, channel=channel,
                          frame_interval_s=frame_interval_s, levels=pyramid, ngff=ngff) as store:
+        if prm.psf_refine:
+            from dataclasses import replace
+
+            from .refine import series_psf
+
+            h, _ = series_psf(output, key, series, h, store, frame_prep, prm, voxel_size_um=vs, depths_um=d,
+                              solve_kw={"dtype": dt, "backend": backend, "device": (devices or [None])[0],
+                                        **solver_kw})
+            prm = replace(prm, psf_refine=0)
         return run_series(series, h, store, params=prm, key=key, executor=ex, dtype=dt, backend=backend,
-                          prepare=lambda a: prepare(a, offset=offset, name="frame"), progress=progress,
-                          solver_kw=solver_kw)
+                          prepare=frame_prep, progress=progress, solver_kw=solver_kw)
 
 
 def _psf(psf, voxel_size_um, depths_um):
