@@ -38,6 +38,24 @@ def test_reconstruct_writes_volume_and_log(rt, tmp_path, capsys):
     assert not list(tmp_path.glob("*.partial"))
 
 
+def test_a_single_frame_with_singleton_axes_is_one_image(rt, tmp_path, capsys):
+    """A 5-D TIFF of one frame (TCZYX = 1, 1, 1, My, Mx) reconstructs as its 2D image does (a series reads it so
+    too); two frames in it are refused with a pointer to a series output (issue 27)."""
+    meas, psf = _files(tmp_path)
+    img = tifffile.imread(meas)
+    tifffile.imwrite(tmp_path / "five.tif", img[None, None, None], metadata={"axes": "TCZYX"})
+    base = ["--psf", str(psf), "--max-iter", "5", "--quiet"]
+    assert main(["reconstruct", str(meas), "-o", str(tmp_path / "a.ome.tif"), *base]) == 0
+    assert main(["reconstruct", str(tmp_path / "five.tif"), "-o", str(tmp_path / "b.ome.tif"), *base]) == 0
+    np.testing.assert_array_equal(io.read_tiff(tmp_path / "a.ome.tif")[0], io.read_tiff(tmp_path / "b.ome.tif")[0])
+    tifffile.imwrite(tmp_path / "two.tif", np.stack([img, img])[:, None, None], metadata={"axes": "TCZYX"})
+    capsys.readouterr()
+    assert main(["reconstruct", str(tmp_path / "two.tif"), "-o", str(tmp_path / "c.ome.tif"), *base]) == 2
+    err = capsys.readouterr().err
+    assert "(2, 1, 1, 32, 40)" in err and ".ome.zarr" in err and len(err.strip().splitlines()) == 1, err
+    assert not (tmp_path / "c.ome.tif").exists()
+
+
 def test_reconstruct_bad_input_writes_nothing(rt, tmp_path, capsys):
     meas, psf = _files(tmp_path)
     tifffile.imwrite(tmp_path / "stack.tif", np.ones((2, 32, 40), np.uint16))

@@ -11,7 +11,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..solver.params import ADMMParams
-from .inputs import check_bin, devices_arg, layout_options, offsets, read_psf, working_psf
+from .inputs import check_bin, devices_arg, layout_options, offsets, read_psf, single_frame_shape, working_psf
 from .plan import check_headers
 from .progress import Progress
 
@@ -110,8 +110,10 @@ def _read_measurement(args):
     from ..io.prepare import check_image
 
     meas, mmeta = io.read_tiff(args.measurement)
+    meas = meas.reshape(single_frame_shape(meas.shape))
     if meas.ndim != 2:
-        raise InputError(f"measurement '{args.measurement}': expected a 2D image, got shape {meas.shape}")
+        raise InputError(f"measurement '{args.measurement}': expected a 2D image, got shape {meas.shape}"
+                         + ("; several frames: give an .ome.zarr output for a series" if len(meas.shape) > 2 else ""))
     check_image(meas, f"measurement '{args.measurement}'")    # numeric and finite before anything reads them
     return meas, mmeta
 

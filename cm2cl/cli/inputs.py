@@ -16,6 +16,15 @@ from ..solver.params import ADMMParams, layered, parameters
 STREAM = {"auto": "auto", "always": True, "never": False}
 
 
+
+def single_frame_shape(shape) -> tuple:
+    """A measurement's shape with leading axes of length 1 dropped (a 5-D TIFF of one frame, TCZYX = 1, 1,
+    1, My, Mx, is one 2D image, as a series reads it)."""
+    shape = tuple(int(n) for n in shape)
+    while len(shape) > 2 and shape[0] == 1:
+        shape = shape[1:]
+    return shape
+
 def devices_arg(text):
     """``--device``: None (the automatic choice), 'all' (every device that compiles), or 'i,j,...'/a name."""
     from ..device import compiler_report

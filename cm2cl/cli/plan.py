@@ -8,7 +8,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..solver.params import ADMMParams
-from .inputs import STREAM, check_bin, check_psf_shape, devices_arg
+from .inputs import STREAM, check_bin, check_psf_shape, devices_arg, single_frame_shape
 
 
 def layout(args, nz, sensor, dt, backend, params: ADMMParams, padded_shape=None):
@@ -58,8 +58,10 @@ def check_headers(args, params: ADMMParams) -> None:
     from ..solver.memory import host_available_bytes
 
     ms, ps = _headers(args)
+    ms = single_frame_shape(ms)
     if len(ms) != 2:
-        raise InputError(f"measurement '{args.measurement}': expected a 2D image, got shape {ms}")
+        raise InputError(f"measurement '{args.measurement}': expected a 2D image, got shape {ms}"
+                         + ("; several frames: give an .ome.zarr output for a series" if len(ms) > 2 else ""))
     check_psf_shape(ps, args.psf)
     check_bin(args.bin, ms, f"measurement '{args.measurement}'")
     backend, rt = backend_of(args)
