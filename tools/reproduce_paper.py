@@ -251,13 +251,15 @@ def measure(full: bool, log=print) -> tuple[list, dict]:
         row(f"axial FWHM of reconstructed pinholes, {name} region ({r.get('n_fit', 0)} fitted)", ax, a, how_ph, "um",
             why="" if a is not None and abs(a / ax - 1) <= 0.15 else
             "the model's axial PCC widths are 0.4 of the paper's (the rows above): what widens the measured PSF in "
-            "depth is not modelled; and off the centre a pinhole's image keeps 6/9 or 4/9 of its light, so l1's "
-            "soft threshold cuts more of its weaker axial tails, which narrows the profile instead of widening it")
+            "depth is not modelled. Off the centre the model's profiles are narrower, not wider as in the paper; a "
+            "likely cause, not checked: a pinhole there keeps 6/9 or 4/9 of its light, and l1's soft threshold cuts "
+            "more of its weaker axial tails")
         l_ = (r.get("fwhm_lateral_um") or {}).get("median")
         row(f"lateral FWHM of reconstructed pinholes, {name} region", lat, l_, how_ph, "um",
             why="" if l_ is not None and abs(l_ / lat - 1) <= 0.15 else
-            f"the binned grid's {ph['object_pixel_um']:.1f}-um object pixels bound the lateral FWHM from below "
-            "(the paper's 5.3-um pixels need the unbinned sensor, hours here)")
+            f"the reconstructed pinhole is narrower than one of the binned grid's {ph['object_pixel_um']:.1f}-um "
+            "object pixels, so the fit gives its smallest width; the paper's 5.3-um pixels need the unbinned sensor "
+            "(hours here)")
     info = {"seconds": time.perf_counter() - t0, "step": step, "half": half, "pcc_order": order,
             "floor": m["floor"], "nyquist": nyq, "pcc_map": lm, "pcc_regions": regions}
     return rows, info
