@@ -296,7 +296,7 @@ def write_md(rows, info, path: Path, argv) -> None:
               f"{'yes' if None not in o and o[0] < o[1] < o[2] else 'no'} ({', '.join(fmt(v, '.0f') for v in o)} um). "
               f"The MTF's support floor: {info['floor']['used']:.3g} of DC (noise floor {info['floor']['noise']:.2g}).",
               "", "## Not measured here yet", "",
-              "These need reconstructions of simulated pinholes, beads and scattering phantoms at the paper's grid "
+              "These need reconstructions of simulated 10-um beads and scattering phantoms at the paper's grid "
               "(hours on this machine); the commands measure them on a user's own data.", "",
               "| quantity | paper | command |", "|---|---|---|"]
     lines += [f"| {a} | {b} | {c} |" for a, b, c in NOT_YET]
