@@ -383,7 +383,6 @@ def test_ctrl_c_while_the_command_starts_is_one_line_and_130(delay):
     time.sleep(delay)
     p.send_signal(signal.SIGINT)
     _, err = p.communicate(timeout=60)
-    if p.returncode == 0:
-        pytest.skip("the command finished before the signal")
+    # loading numpy, OpenCL and the solver takes far longer than the delay: the signal always finds it running
     assert p.returncode == 130 and "Traceback" not in err, err
     assert len(err.strip().splitlines()) == 1 and "interrupted" in err

@@ -197,13 +197,14 @@ def _pcc(args, psf, meta) -> dict:
             "png": ("pcc", z, unit, r, args.level), "say": say}
 
 
-def _numbers(text, flag, n, kind=float):
-    """``n`` comma-separated numbers of ``kind`` from an option's text (one value stands for all)."""
+def _numbers(text, flag, n, kind=float, repeat: bool = True):
+    """``n`` comma-separated numbers of ``kind`` from an option's text (with ``repeat``, one value stands for
+    all)."""
     try:
         v = [kind(t) for t in str(text).split(",")]
     except ValueError:
         v = []
-    if len(v) == 1 and n > 1:
+    if repeat and len(v) == 1 and n > 1:
         v = v * n
     if len(v) != n or not all(math.isfinite(x) for x in v):
         raise InputError(f"{flag}: expected {n} comma-separated {'integers' if kind is int else 'numbers'}, got {text!r}")
@@ -308,11 +309,8 @@ def _mtf(args, psf, meta) -> dict:
         _positive(getattr(args, flag), "--" + flag.replace("_", "-"))
     fov = None
     if args.fov_mm is not None:
-        try:
-            fov = tuple(float(v) for v in args.fov_mm.split(","))
-        except ValueError:
-            fov = ()
-        if len(fov) != 2 or not all(math.isfinite(v) and v > 0 for v in fov):
+        fov = tuple(_numbers(args.fov_mm, "--fov-mm", 2, repeat=False))
+        if not all(v > 0 for v in fov):
             raise InputError(f"--fov-mm: expected two positive numbers H,W in mm, got {args.fov_mm!r}")
     z, unit = _depths(meta, psf.shape[0])
     if unit != "um":
