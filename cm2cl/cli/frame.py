@@ -174,7 +174,8 @@ def _solve(args, y, wp, weights, params: ADMMParams, dt):
     devs = devices_arg(args.device)
     if args.tile:
         return _tiled(args, y, wp, dt, devs, weights, params)
-    rounds = params.psf_refine * min(params.psf_refine_iter, params.max_iter)
+    # auto: the check's round (the rest, if it refines, runs past the bar's estimate)
+    rounds = (1 if params.psf_refine is None else params.psf_refine) * min(params.psf_refine_iter, params.max_iter)
     progress = Progress(params.max_iter + rounds, args.quiet, every=args.progress_every)
     try:
         return reconstruct(y, wp.h, dtype=dt, backend=args.backend, device=devs[0],

@@ -15,6 +15,14 @@ from ..solver.params import PRESETS, PRIORS, parameters
 _TYPES = {"float": float, "int": int, "str": str}
 
 
+def _or_auto(convert):
+    """A converter that takes the word 'auto' as None (the parameter's automatic value), else ``convert``."""
+    def parse(text: str):
+        return None if str(text).strip().lower() == "auto" else convert(text)
+    parse.__name__ = convert.__name__   # argparse names the type in its error message
+    return parse
+
+
 def size(text: str) -> int:
     """A byte count: a number with an optional binary unit K, M, G or T (4G = 4 * 2**30)."""
     t = str(text).strip().upper().removesuffix("B").removesuffix("I")
@@ -93,7 +101,9 @@ def add_parameters(g) -> None:
             continue
         text = re.sub(r"\b(" + "|".join(n for n in flags if n != p.name) + r")\b", lambda m: flags[m[1]], p.help)
         shown = p.auto or (p.default if isinstance(p.default, str) else f"{p.default:g}")
-        g.add_argument(p.flag, dest=p.name, type=_TYPES[p.spec["type"]], default=None,
+        convert = _TYPES[p.spec["type"]]
+        g.add_argument(p.flag, dest=p.name, type=_or_auto(convert) if p.default is None and p.auto else convert,
+                       default=None,
                        choices=p.spec.get("choices"), help=_escape(f"{text.rstrip('.')} (default: {shown})"))
 
 

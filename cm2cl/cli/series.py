@@ -56,7 +56,9 @@ def command(args, params: ADMMParams) -> int:
         layout(args, shape[0], shape[1:], dt, backend_of(args)[0], params, solver_kw.get("padded_shape"))
     record = {"what": "cm2cl reconstruction series", "psf": str(args.psf), "params": params.as_dict(),
               "frames": [f"{f.path}[{f.index}]" for f in series.frames[:1000]], "scale": wp.scale, "prep": prep}
-    if params.psf_refine:
+    # N rounds, or auto (None) where it can refine: frame 0 decides, once for every frame
+    refine = params.psf_refine or (params.psf_refine is None and args.padding != "support")
+    if refine:
         from ..jobs.refine import refined_psf_path
 
         record["psf_refined"] = str(refined_psf_path(out))
@@ -66,9 +68,9 @@ def command(args, params: ADMMParams) -> int:
                          voxel_size_um=wp.voxel_size_um, depths_um=wp.depths_um, record=record,
                          channel=args.channel, frame_interval_s=args.frame_interval, levels=args.pyramid,
                          ngff=args.ngff) as store:
-        if params.psf_refine:
-            h, params = _refined(args, params, series, h, store, key, frame_prep, solver_kw, dt, wp), \
-                replace(params, psf_refine=0)
+        if refine:
+            h = _refined(args, params, series, h, store, key, frame_prep, solver_kw, dt, wp)
+        params = replace(params, psf_refine=0)
         progress = FrameProgress(len(store.missing()), args.quiet, every=args.progress_every)
         try:
             s = run_series(series, h, store, params=params, key=key, executor=ex, dtype=dt, backend=args.backend,
@@ -91,7 +93,7 @@ def _refined(args, params, series, h, store, key, frame_prep, solver_kw, dt, wp)
     """The PSF stack every frame is solved with under --psf-refine (:func:`cm2cl.jobs.refine.series_psf`)."""
     from ..jobs.refine import refined_psf_path, series_psf
 
-    if not args.quiet:
+    if not args.quiet and params.psf_refine:
         print(f"cm2cl: the PSF is refined on frame 0 ({params.psf_refine} rounds) unless '{refined_psf_path(args.output)}' "
               "holds this job's", file=sys.stderr)
     solve_kw = {"dtype": dt, "backend": args.backend, "device": devices_arg(args.device)[0], **solver_kw}

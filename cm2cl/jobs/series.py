@@ -50,7 +50,8 @@ def reconstruct_series(frames, psf, output, *, client=None, devices=None, warm_s
     **params :
         The solver's parameters, as :func:`cm2cl.reconstruct`. With ``psf_refine`` the PSF is refined on the
         first frame and every frame solved with that stack, kept beside the store as ``OUT.psf.ome.tif``
-        (:mod:`cm2cl.jobs.refine`; a resumed job reads it back).
+        (:mod:`cm2cl.jobs.refine`; a resumed job reads it back); by default (auto) frame 0's check decides
+        whether it is refined, once for every frame.
 
     Returns
     -------
@@ -86,15 +87,15 @@ def reconstruct_series(frames, psf, output, *, client=None, devices=None, warm_s
     with FrameStore.open(output, fingerprint=key, n_frames=len(series), volume_shape=h.shape, dtype=dt,
                          voxel_size_um=vs, depths_um=d, record=record, channel=channel,
                          frame_interval_s=frame_interval_s, levels=pyramid, ngff=ngff) as store:
-        if prm.psf_refine:
-            from dataclasses import replace
+        from dataclasses import replace
 
+        if prm.psf_refine != 0:   # N rounds, or None (auto): frame 0 decides, once for every frame
             from .refine import series_psf
 
             h, _ = series_psf(output, key, series, h, store, frame_prep, prm, voxel_size_um=vs, depths_um=d,
                               solve_kw={"dtype": dt, "backend": backend, "device": (devices or [None])[0],
                                         **solver_kw})
-            prm = replace(prm, psf_refine=0)
+        prm = replace(prm, psf_refine=0)
         return run_series(series, h, store, params=prm, key=key, executor=ex, dtype=dt, backend=backend,
                           prepare=frame_prep, progress=progress, solver_kw=solver_kw)
 

@@ -167,6 +167,8 @@ def reconstruct_tiled(measurement, psf, tile, halo=None, *, progress=None, **kw)
             raise InputError(f"{bad}: not available with lateral tiles")
     if kw.get("psf_refine"):
         raise InputError("psf_refine: not available with lateral tiles (the PSF is refined on the whole frame)")
+    # auto (None) does not refine tiles: a tile's few views would each decide for themselves
+    kw = {**kw, "psf_refine": 0}
     plan = plan_tiles(y.shape, psf, tile, halo)
     # the whole frame's normalisation and weights (module doc)
     h = np.asarray(psf, np.float64)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+from dataclasses import replace
 
 import numpy as np
 
@@ -131,6 +132,8 @@ def reconstruct(measurement, psf, *, dtype=np.float32, backend: str = "auto", de
     if prm.psf_refine and pad_info is not None:
         raise InputError("psf_refine: not with padding='support' (the refined PSF reaches past the measured "
                          "support); use padding='full'")
+    auto = prm.psf_refine is None
+    skipped = _auto_skipped(psf, padded_shape, pad_info) if auto else None
 
     done = [0]   # iterations of the refinement's rounds before this solve: the callback's rows count on
 
@@ -143,45 +146,86 @@ def reconstruct(measurement, psf, *, dtype=np.float32, backend: str = "auto", de
         done[0] += rec.iterations
         return solver, rec
 
-    if prm.psf_refine:
+    if prm.psf_refine or (auto and skipped is None):
         solver, rec = _refined(solve, y, psf, weights, prm, padded_shape, x0)
     else:
-        solver, rec = solve(psf, prm, padded_shape, x0)
+        solver, rec = solve(psf, replace(prm, psf_refine=0), padded_shape, x0)
+        if auto:
+            rec.info["psf_refine"] = {"mode": "auto", "refined": False, "rounds": 0, "skipped": skipped}
     rec.voxel_size_um, rec.depths_um = vs, d
     rec.info["padding"] = pad_info or {"padded_shape": list(solver.P), "support_px": None}
     rec.info["camera"] = cam
     return rec
 
 
+def _auto_skipped(psf, padded_shape, pad_info) -> str | None:
+    """Why ``psf_refine=None`` (auto) does not check the views here, or None: a PSF of one view (a diffuser's
+    caustic or a single lens: nothing to disagree), padding='support' (the refined PSF would reach past the
+    measured support), or a check that would need more than half the host's available memory (its float64
+    lenslet images on the padded grid)."""
+    from . import psf_refine as R
+    from .forward import choose_padded_shape
+    from .memory import host_available_bytes
+
+    if pad_info is not None:
+        return "padding='support'"
+    labels = R.lenslet_labels(psf)
+    n = int(labels.max())
+    if n < 2:
+        return "the PSF has one view"
+    P = padded_shape if padded_shape is not None else choose_padded_shape(psf.shape[1:], "cl")
+    need = 8 * int(P[0]) * int(P[1]) * (3 * psf.shape[0] + n + 4)
+    if need > host_available_bytes() // 2:
+        log.warning("psf_refine auto: the view check needs %.1f GiB of host memory, more than half of what is "
+                    "available; the PSF is used as given (give psf_refine=0 to say so)", need / 2**30)
+        return f"the check needs {need / 2**30:.1f} GiB of host memory"
+    return None
+
+
 def _refined(solve, y, psf, weights, prm, padded_shape, x0):
     """(solver, reconstruction) with the PSF self-calibrated (:mod:`.psf_refine`): ``prm.psf_refine`` rounds
     of a ``psf_refine_iter``-iteration solve and a kernel fit per lenslet, each solve warm-started from the
-    last, then the solve to the stopping rule with the refined PSF; the record in ``info['psf_refine']``."""
-    from dataclasses import replace
+    last, then the solve to the stopping rule with the refined PSF; the record in ``info['psf_refine']``.
 
+    ``prm.psf_refine`` None (auto): the first round (a sparse solve, one kernel per lenslet) is also the check
+    (:func:`.psf_refine.view_disagreement`); when the views agree the PSF is used as given and the solve is
+    the plain one from ``x0``, else the rest of ``AUTO_ROUNDS`` rounds follow."""
     from . import psf_refine as R
 
     labels = R.lenslet_labels(psf)
     w = pixel_weights(weights, y.shape)
-    inner = replace(prm, max_iter=min(prm.psf_refine_iter, prm.max_iter))
+    auto = prm.psf_refine is None
+    n = R.AUTO_ROUNDS if auto else prm.psf_refine
+    inner = replace(prm, psf_refine=n, max_iter=min(prm.psf_refine_iter, prm.max_iter))
     h = np.asarray(psf, np.float64)
-    P, x_start, rounds = padded_shape, x0, []
-    n = prm.psf_refine
+    P, x_start, rounds, check = padded_shape, x0, [], None
     for rnd in range(n):
         scale, nodes = R.round_schedule(rnd, n, prm.psf_refine_l1_start, prm.psf_refine_depth_nodes)
         solver, rec = solve(h, replace(inner, l1_scale=prm.l1_scale * scale), P, x_start)
         P, x_start = solver.P, rec.volume_padded
         b = rec.background if rec.background is not None else 0.0
-        h, k, misfit = R.refine_step(h, labels, rec.volume_padded, y - b, prm.psf_refine_radius, w,
-                                     depth_nodes=nodes)
+        step = R.refine_step(h, labels, rec.volume_padded, y - b, prm.psf_refine_radius, w, depth_nodes=nodes,
+                             check=auto and rnd == 0)
+        h, k, misfit = step[:3]
         rounds.append({"iterations": rec.iterations, "residual": misfit, "l1_scale": scale, "depth_nodes": nodes,
                        "kernels": R.kernel_summary(k)})
         gains = [q["gain"] for q in rounds[-1]["kernels"]]
         log.info("PSF refinement round %d of %d: %d iterations, misfit %.4f before it; %d kernels, gains %.2f-%.2f",
-                 len(rounds), prm.psf_refine, rec.iterations, misfit, len(gains), min(gains), max(gains))
-    solver, rec = solve(h, prm, P, x_start)
+                 len(rounds), n, rec.iterations, misfit, len(gains), min(gains), max(gains))
+        if auto and rnd == 0:
+            check = {**step[3], "iterations": rec.iterations, "l1_scale": scale}
+            log.info("psf_refine auto: the lenslets' kernels explain %.3f of the misfit beyond a common one "
+                     "(threshold %.3f): %s", check["disagreement"], check["threshold"],
+                     "refining" if check["refine"] else "the PSF is used as given")
+            if not check["refine"]:
+                solver, rec = solve(psf, replace(prm, psf_refine=0), padded_shape, x0)
+                rec.info["psf_refine"] = {"mode": "auto", "refined": False, "rounds": 0, "check": check,
+                                          "iterations_total": check["iterations"] + rec.iterations}
+                return solver, rec
+    solver, rec = solve(h, replace(prm, psf_refine=n), P, x_start)
     rec.psf = h
-    rec.info["psf_refine"] = {"rounds": prm.psf_refine, "lenslets": int(labels.max()),
+    rec.info["psf_refine"] = {"mode": "auto" if auto else "given", "refined": True, "check": check,
+                              "rounds": n, "lenslets": int(labels.max()),
                               "radius_px": prm.psf_refine_radius, "overrelax": R.OVERRELAX,
                               "depth_nodes": int(R.depth_weights(h.shape[0], prm.psf_refine_depth_nodes).shape[0]),
                               "l1_start": prm.psf_refine_l1_start, "per_round": rounds,

@@ -45,6 +45,12 @@ RIDGE = 1e-3
 #: over-relaxation of each kernel update (measured on docs/quality.md's mismatch scenes: 1.7 converged in
 #: 4-6 rounds where 1.0 needed more than 10)
 OVERRELAX = 1.7
+#: psf_refine=None (auto): the rounds run when the views disagree (docs/psf_refine.md's schedule)
+AUTO_ROUNDS = 12
+#: psf_refine=None (auto): refine when separate kernels per lenslet explain more than this fraction of the
+#: misfit beyond one common kernel (:func:`view_disagreement`), measured after the first round's sparse solve;
+#: on docs/psf_refine.md's 66 scenes matched PSFs gave at most 0.019 and mismatched ones at least 0.027
+VIEW_DISAGREEMENT = 0.025
 #: design-matrix entries per chunk of sensor rows (memory of the normal equations' accumulation)
 CHUNK_ENTRIES = 1 << 23
 
@@ -207,20 +213,64 @@ def kernel_summary(kernels: np.ndarray) -> list[dict]:
 
 
 def refine_step(psf, labels, volume_padded, target, radius: int, weights=None, beta: float = OVERRELAX,
-                depth_nodes: int = 1):
+                depth_nodes: int = 1, check: bool = False):
     """One round: (the refined PSF stack, the kernels applied (indexed j G + g), the relative weighted misfit
     ||target - C H x|| / ||target|| before it) from a reconstruction's padded volume and the measurement
-    less its background; ``depth_nodes`` G kernels per lenslet, interpolated over depth."""
+    less its background; ``depth_nodes`` G kernels per lenslet, interpolated over depth. ``check`` (one
+    node): a fourth item, :func:`view_disagreement`'s record of the same fit."""
     W = depth_weights(psf.shape[0], depth_nodes)
     F = lenslet_images(psf, labels, volume_padded, W)
     M = psf.shape[1:]
-    oy, ox = crop_offsets(M, F.shape[1:])
     w = np.ones(M) if weights is None else np.asarray(weights, np.float64)
-    model = F.sum(axis=0)[oy:oy + M[0], ox:ox + M[1]]
+    model = sensor_model(F, None, M)
     misfit = float(np.sqrt(np.sum(w * (target - model) ** 2) / max(np.sum(w * target ** 2), 1e-300)))
-    k = relax(fit_kernels(F, target, M, radius, weights), beta)
-    return apply_kernels(psf, labels, k, W), k, misfit
+    fitted = fit_kernels(F, target, M, radius, weights)
+    k = relax(fitted, beta)
+    out = (apply_kernels(psf, labels, k, W), k, misfit)
+    if not check:
+        return out
+    if W.shape[0] != 1:
+        raise ValueError("refine_step: the view check fits one kernel per lenslet (depth_nodes=1)")
+    return out + (view_disagreement(F, fitted, target, M, radius, w),)
 
 
-__all__ = ["lenslet_labels", "depth_weights", "round_schedule", "lenslet_images", "fit_kernels", "relax", "apply_kernels", "kernel_summary",
-           "refine_step"]
+def sensor_model(images, kernels, sensor_shape) -> np.ndarray:
+    """C sum_j k_j (*) F_j on the sensor: ``images`` (n, Py, Px) the F_j on the padded grid, ``kernels``
+    (n, 2r+1, 2r+1) indexed as :func:`fit_kernels` returns them (None: identity kernels, C sum_j F_j)."""
+    My, Mx = sensor_shape
+    oy, ox = crop_offsets(sensor_shape, images.shape[1:])
+    if kernels is None:
+        return images.sum(axis=0)[oy:oy + My, ox:ox + Mx]
+    r = kernels.shape[1] // 2
+    out = np.zeros((My, Mx))
+    for j in range(images.shape[0]):
+        for (dy, dx), kv in zip(_taps(r), kernels[j].ravel()):
+            if kv:
+                out += kv * images[j, oy - dy:oy + My - dy, ox - dx:ox + Mx - dx]
+    return out
+
+
+def view_disagreement(images, kernels, target, sensor_shape, radius: int, weights=None) -> dict:
+    """How much the lenslets' views disagree with the PSF, from one fit of a kernel per lenslet (``kernels``,
+    :func:`fit_kernels` on ``images`` F_j, one depth node): the fraction of the weighted misfit that separate
+    kernels explain beyond one kernel common to every lenslet,
+
+        d = (S_common - S_separate) / S_common,   S = sum_p w_p (target_p - (C sum_j k_j (*) F_j)_p)^2.
+
+    A kernel common to all lenslets is a blur, shift or gain of the whole PSF, which the volume can absorb
+    (a bead's own size, a global defocus blur): it leaves no ghosts. Lenslets that need different kernels
+    (aberrations that differ between lenslets, vignetting, a field stop) disagree about where an emitter is,
+    and a least-squares volume explains the disagreement with spurious emitters: what psf_refine corrects.
+    Returns ``{'disagreement': d, 'refine': d > VIEW_DISAGREEMENT, 'threshold', 'lenslets', 'gains'}``."""
+    w = np.ones(sensor_shape) if weights is None else np.asarray(weights, np.float64)
+    common = images.sum(axis=0, keepdims=True)
+    kc = fit_kernels(common, target, sensor_shape, radius, w)
+    s_sep = float(np.sum(w * (target - sensor_model(images, kernels, sensor_shape)) ** 2))
+    s_com = float(np.sum(w * (target - sensor_model(common, kc, sensor_shape)) ** 2))
+    d = (s_com - s_sep) / s_com if s_com > 0 else 0.0
+    return {"disagreement": d, "refine": bool(d > VIEW_DISAGREEMENT), "threshold": VIEW_DISAGREEMENT,
+            "lenslets": int(images.shape[0]), "gains": [float(g) for g in kernels.sum(axis=(1, 2))]}
+
+
+__all__ = ["lenslet_labels", "depth_weights", "round_schedule", "lenslet_images", "fit_kernels", "relax", "apply_kernels",
+           "kernel_summary", "refine_step", "sensor_model", "view_disagreement", "AUTO_ROUNDS", "VIEW_DISAGREEMENT"]
