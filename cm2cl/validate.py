@@ -58,7 +58,7 @@ def psf_stack(psf, name: str = "psf") -> np.ndarray:
 class Checker:
     """The one validation mechanism of cm2cl: values and tables of values checked against specs
     ({"type": "float"|"int"|"bool"|"str"|"vec2"|"vec3"|"intpair"|"points3", "min", "max", "exclusive",
-    "choices", "default", "required", "optional"}). Every failure is an InputError
+    "choices", "words", "default", "required", "optional"}; "words": strings a number field also takes). Every failure is an InputError
     "<label>: <key path>: <problem>" (the label names the file or the call, e.g. "scene 'a.toml'")."""
 
     def __init__(self, label: str | None = None, prefix: str = ""):
@@ -98,6 +98,8 @@ class Checker:
         kind = spec["type"]
         if v is None:
             return None
+        if isinstance(v, str) and v in spec.get("words", ()):   # e.g. psf_refine='auto'
+            return v
         if kind == "float":
             return self.number(key, v, spec)
         if kind == "int":

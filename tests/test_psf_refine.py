@@ -4,7 +4,7 @@ one by per-lenslet kernels the refined PSF moves towards the true one and the be
 
 import numpy as np
 import pytest
-from scipy import signal
+from scipy import ndimage, signal
 
 import cm2cl
 from cm2cl.analysis import quality as Q
@@ -275,3 +275,185 @@ def test_refinement_fixes_the_aberrated_scene_of_the_quality_suite(rt):
     assert s["recall"] >= 0.95 and s["false_per_10"] <= 1.0 and s["axial_err"] <= 0.5, s
     info = rec.info["psf_refine"]
     assert info["depth_nodes"] == 3 and [r["depth_nodes"] for r in info["per_round"]] == [1] * 4 + [3] * 8
+
+
+# ---------------------------------------------------------------------------------------------------- auto
+def _per_lenslet_kernels(n, r, seed, spread):
+    """n normalised Gaussian kernels, each shifted and widened by its own draw (``spread`` 0: all alike)."""
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[-r:r + 1, -r:r + 1]
+    out = []
+    for _ in range(n):
+        cy, cx = spread * rng.uniform(-1.2, 1.2, 2) + 0.4
+        s = 0.8 + spread * rng.uniform(0.0, 0.6)
+        g = np.exp(-((yy - cy) ** 2 + (xx - cx) ** 2) / (2 * s ** 2))
+        out.append(g / g.sum())
+    return np.array(out)
+
+
+def test_sensor_model_is_the_forward_model_with_the_kernels_applied():
+    """C sum_j k_j (*) F_j (the check's model) equals the forward model of the stack with each lenslet's
+    kernel applied (apply_kernels before its clip and per-plane scaling, which keep light here) and, with
+    identity kernels, the forward model of the given stack."""
+    nz, shape = 3, (64, 64)
+    psf = Q.array_psf(nz, shape)
+    lab = R.lenslet_labels(psf)
+    x = np.zeros((nz,) + shape)
+    rng = np.random.default_rng(3)
+    x[rng.integers(0, nz, 15), rng.integers(12, 52, 15), rng.integers(12, 52, 15)] = rng.uniform(0.5, 1, 15)
+    P = (2 * shape[0], 2 * shape[1])
+    xp = np.zeros((nz,) + P)
+    xp[:, (P[0] - shape[0]) // 2:(P[0] - shape[0]) // 2 + shape[0], (P[1] - shape[1]) // 2:(P[1] - shape[1]) // 2 + shape[1]] = x
+    F = R.lenslet_images(psf, lab, xp)
+    np.testing.assert_allclose(R.sensor_model(F, None, shape), Q.object_image(psf, x), atol=1e-12 * Q.object_image(psf, x).max())
+    k = _per_lenslet_kernels(int(lab.max()), 3, 1, 1.0)
+    # the kernels move no light across the sensor's edge here, so apply_kernels' per-plane scaling is exact
+    want = Q.object_image(R.apply_kernels(psf, lab, k), x)
+    np.testing.assert_allclose(R.sensor_model(F, k, shape), want, rtol=0, atol=2e-3 * want.max())
+
+
+def test_view_disagreement_tells_a_common_kernel_from_kernels_per_lenslet():
+    """Data from the same volume with white noise: a blur, shift and gain common to every lenslet is explained
+    by one kernel (the separate kernels fit only noise: F below 1, no refinement, though on this small sensor
+    they remove more of the misfit than the size threshold); lenslets each with their own kernel are not
+    (F and the misfit fraction far above their thresholds)."""
+    nz, shape = 4, (64, 64)
+    psf = Q.array_psf(nz, shape)
+    lab = R.lenslet_labels(psf)
+    n = int(lab.max())
+    beads = Q.place_beads(10, nz, shape, 4, margin=10)
+    x = Q.bead_volume(beads, np.ones(len(beads)), nz, shape)
+    xp = np.zeros((nz, 128, 128))
+    xp[:, 32:96, 32:96] = x
+    F = R.lenslet_images(psf, lab, xp)
+    common = np.repeat(_per_lenslet_kernels(1, 3, 2, 0.0), n, axis=0) * 1.3
+    own = _per_lenslet_kernels(n, 3, 2, 1.0) * np.linspace(0.6, 1.4, n)[:, None, None]
+    noise = np.random.default_rng(7).normal(size=shape)
+    stats = {}
+    for name, k in (("common", common), ("own", own)):
+        clean = R.sensor_model(F, k, shape)
+        target = clean + 0.01 * clean.max() * noise
+        stats[name] = R.view_disagreement(F, R.fit_kernels(F, target, shape, 3), target, shape, 3)
+    c, o = stats["common"], stats["own"]
+    # non-negative kernels use fewer than their p taps on noise, so F falls below 1 (the test is conservative)
+    assert 0.05 < c["f_statistic"] < 1.0 and not c["refine"], c
+    assert c["disagreement"] > R.VIEW_DISAGREEMENT   # on 64 x 64 pixels noise alone passes the size threshold
+    assert o["f_statistic"] > 10 and o["disagreement"] > 0.5 and o["refine"], o
+    assert o["lenslets"] == n == 9 and len(o["gains"]) == n
+
+
+def test_auto_leaves_a_matching_psf_as_given_and_refines_a_mismatched_one(rt):
+    """psf_refine='auto': on beads imaged by the given PSF the check finds the views in agreement and the
+    reconstruction is the plain one (psf_refine=0) bit for bit; on the quality suite's vignetted scene
+    (lenslets dimmed by up to 60%, a field stop) it refines, and the ghosts the plain solve leaves are gone."""
+    spec = {s.name: s for s in Q.scene_specs()}
+    kw = dict(max_iter=300)
+    matched = Q.render_scene(spec["beads"])
+    rec = cm2cl.reconstruct(matched.y, matched.psf, psf_refine="auto", **kw)
+    info = rec.info["psf_refine"]
+    assert info["mode"] == "auto" and not info["refined"] and rec.psf is None
+    assert info["check"]["disagreement"] < R.VIEW_DISAGREEMENT and info["check"]["f_statistic"] < R.VIEW_F
+    np.testing.assert_array_equal(rec.volume, cm2cl.reconstruct(matched.y, matched.psf, **kw).volume)
+    sc = Q.render_scene(spec["mm_trunc"])
+    plain = Q.score_beads(cm2cl.reconstruct(sc.y, sc.psf, **kw).volume, sc.beads)
+    rec = cm2cl.reconstruct(sc.y, sc.psf, psf_refine="auto", **kw)
+    info = rec.info["psf_refine"]
+    assert info["mode"] == "auto" and info["refined"] and info["rounds"] == R.AUTO_ROUNDS
+    assert info["check"]["disagreement"] > 3 * R.VIEW_DISAGREEMENT and info["check"]["f_statistic"] > 3 * R.VIEW_F
+    assert rec.psf is not None and len(info["per_round"]) == R.AUTO_ROUNDS
+    s = Q.score_beads(rec.volume, sc.beads)
+    assert plain["false_per_10"] > 2 and s["false_per_10"] <= 1.0 and s["recall"] >= 0.95, (plain, s)
+
+
+def test_auto_does_not_check_where_it_cannot_refine(rt):
+    """A PSF of one view, spots that are no views through depth, padding='support' and lateral tiles: 'auto'
+    solves with the PSF as given (the plain solve's bits), says why, and refuses nothing."""
+    nz, shape = 3, (48, 48)
+    psf = np.zeros((nz,) + shape)
+    yy, xx = np.mgrid[:48, :48]
+    for i in range(nz):
+        psf[i] = np.exp(-((yy - 24) ** 2 + (xx - 24) ** 2) / (2 * (1 + i) ** 2))
+    x = np.zeros((nz,) + shape)
+    x[1, 20, 22] = 1.0
+    y = Q.object_image(psf, x)
+    rec = cm2cl.reconstruct(y, psf, max_iter=30, psf_refine="auto")
+    assert rec.info["psf_refine"]["skipped"] == "the PSF has one view"
+    np.testing.assert_array_equal(rec.volume, cm2cl.reconstruct(y, psf, max_iter=30).volume)
+    scattered = np.zeros((nz,) + shape)          # 4 spots per plane, each plane's elsewhere
+    rng = np.random.default_rng(2)
+    for i in range(nz):
+        scattered[i, rng.integers(8, 40, 4), rng.integers(8, 40, 4)] = 1.0
+    scattered = ndimage.gaussian_filter(scattered, (0, 1.0, 1.0))
+    rec = cm2cl.reconstruct(Q.object_image(scattered, x), scattered, max_iter=30, psf_refine="auto")
+    assert rec.info["psf_refine"]["skipped"] == "the PSF's pieces are not views through its depth"
+    arr = Q.array_psf(nz, (64, 64))
+    assert R.views_through_depth(arr, R.lenslet_labels(arr))
+    x = np.zeros((nz, 64, 64))
+    x[1, 30, 28] = 1.0
+    y = Q.object_image(arr, x)
+    rec = cm2cl.reconstruct(y, arr, max_iter=30, padding="support", psf_refine="auto")
+    assert rec.info["psf_refine"]["skipped"] == "padding='support'"
+    from cm2cl.jobs.tiles import reconstruct_tiled
+
+    # tiles take 'auto' and solve each tile with the PSF as given (a compact PSF, so that tiles pay)
+    y1 = Q.object_image(psf, np.pad(x[:, 8:56, 8:56], ((0, 0), (0, 0), (0, 0))))
+    vol, _ = reconstruct_tiled(y1, psf, (24, 24), max_iter=10, psf_refine="auto")
+    ref_vol, _ = reconstruct_tiled(y1, psf, (24, 24), max_iter=10)
+    np.testing.assert_array_equal(vol, ref_vol)
+    with pytest.raises(InputError, match="lateral tiles"):
+        reconstruct_tiled(y1, psf, (24, 24), max_iter=10, psf_refine=2)
+
+
+def test_cli_psf_refine_takes_auto_and_zero(rt, tmp_path):
+    """--psf-refine auto is the default's word; --psf-refine 0 turns the check off; a word that is neither
+    a number nor 'auto' is one line and exit 2."""
+    import json
+
+    import tifffile
+
+    from cm2cl.cli import main
+
+    psf, _, y, _ = _kernel_mismatch_scene()
+    tifffile.imwrite(tmp_path / "psf.tif", psf.astype(np.float32), photometric="minisblack")
+    tifffile.imwrite(tmp_path / "meas.tif", (y / y.max() * 1000).astype(np.float32))
+    base = ["reconstruct", str(tmp_path / "meas.tif"), "--psf", str(tmp_path / "psf.tif"), "--max-iter", "100",
+            "--psf-refine-iter", "100", "--quiet"]
+    for word, refined in (("auto", True), ("0", False)):
+        out = tmp_path / f"v{word}.ome.tif"
+        assert main(base + ["-o", str(out), "--psf-refine", word]) == 0
+        info = json.loads((tmp_path / f"v{word}.cm2cl.json").read_text())["info"]
+        assert (info.get("psf_refine") or {}).get("refined", False) is refined, info.get("psf_refine")
+    with pytest.raises(SystemExit) as e:
+        main(base + ["-o", str(tmp_path / "w.ome.tif"), "--psf-refine", "some"])
+    assert e.value.code == 2 and not (tmp_path / "w.ome.tif").exists()
+
+
+def test_series_auto_decides_on_frame_0_once(rt, tmp_path):
+    """reconstruct_series(..., psf_refine='auto'): frames whose views disagree with the PSF (each lenslet blurred
+    and shifted by its own kernel) get the stack refined on frame 0, kept as OUT.psf.ome.tif, every frame the
+    plain solve with it; frames made by the given PSF get no file and every frame is the plain solve with
+    the given stack."""
+    import zarr
+
+    from cm2cl import io
+
+    psf, _, y, _ = _kernel_mismatch_scene()
+    kw = dict(max_iter=40, tol=0.0, psf_refine_iter=40)
+    frames = np.stack([y, 1.1 * y])
+    s = cm2cl.reconstruct_series(frames, psf, tmp_path / "m.ome.zarr", psf_refine="auto", **kw)
+    assert s.computed == 2
+    h, meta = io.read_tiff(tmp_path / "m.psf.ome.tif")
+    np.testing.assert_array_equal(h, cm2cl.reconstruct(frames[0], psf, psf_refine="auto", **kw).psf)
+    vol = np.asarray(zarr.open_group(str(tmp_path / "m.ome.zarr"), mode="r")["0"])
+    one = cm2cl.reconstruct(frames[1], h, **kw).volume
+    np.testing.assert_allclose(vol[1], one, rtol=1e-5, atol=1e-6 * one.max())
+    nz, shape = psf.shape[0], psf.shape[1:]
+    beads = Q.place_beads(12, nz, shape, 5, margin=10)
+    clean = Q.object_image(psf, Q.bead_volume(beads, np.ones(len(beads)), nz, shape))
+    noisy = np.random.default_rng(4).poisson(np.maximum(clean, 0) / clean.max() * 2000.0) / 2000.0
+    frames = np.stack([noisy, 1.1 * noisy])
+    s = cm2cl.reconstruct_series(frames, psf, tmp_path / "a.ome.zarr", psf_refine="auto", **kw)
+    assert s.computed == 2 and not (tmp_path / "a.psf.ome.tif").exists()
+    vol = np.asarray(zarr.open_group(str(tmp_path / "a.ome.zarr"), mode="r")["0"])
+    one = cm2cl.reconstruct(frames[1], psf, **kw).volume
+    np.testing.assert_allclose(vol[1], one, rtol=1e-5, atol=1e-6 * one.max())

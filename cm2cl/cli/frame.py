@@ -85,9 +85,9 @@ def check_options(args) -> None:
         from ..io.background import check_background_spec
 
         check_background_spec(args.background)
-    if args.save_psf and not args.psf_refine:
+    if args.save_psf and (not args.psf_refine or args.psf_refine == "auto"):
         raise InputError("--save-psf: writes the self-calibrated PSF; give --psf-refine ROUNDS as well")
-    if args.psf_refine and (args.tile or args.padding == "support"):
+    if args.psf_refine and args.psf_refine != "auto" and (args.tile or args.padding == "support"):
         raise InputError(f"--psf-refine: not with {'--tile' if args.tile else '--padding support'} (the PSF is "
                          "refined on the whole frame's full padded grid)")
     if args.mask:
@@ -174,8 +174,13 @@ def _solve(args, y, wp, weights, params: ADMMParams, dt):
     devs = devices_arg(args.device)
     if args.tile:
         return _tiled(args, y, wp, dt, devs, weights, params)
-    # auto: the check's round (the rest, if it refines, runs past the bar's estimate)
-    rounds = (1 if params.psf_refine is None else params.psf_refine) * min(params.psf_refine_iter, params.max_iter)
+    # auto: the check's round where it runs (the rest, if it refines, runs past the bar's estimate)
+    n = params.psf_refine
+    if n == "auto":
+        from ..solver.api import auto_skipped
+
+        n = 0 if args.padding == "support" or auto_skipped(wp.h) else 1
+    rounds = n * min(params.psf_refine_iter, params.max_iter)
     progress = Progress(params.max_iter + rounds, args.quiet, every=args.progress_every)
     try:
         return reconstruct(y, wp.h, dtype=dt, backend=args.backend, device=devs[0],

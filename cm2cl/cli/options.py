@@ -15,10 +15,11 @@ from ..solver.params import PRESETS, PRIORS, parameters
 _TYPES = {"float": float, "int": int, "str": str}
 
 
-def _or_auto(convert):
-    """A converter that takes the word 'auto' as None (the parameter's automatic value), else ``convert``."""
+def _with_words(convert, words):
+    """A converter that takes ``words`` as themselves (e.g. --psf-refine auto), else ``convert``."""
     def parse(text: str):
-        return None if str(text).strip().lower() == "auto" else convert(text)
+        t = str(text).strip().lower()
+        return t if t in words else convert(text)
     parse.__name__ = convert.__name__   # argparse names the type in its error message
     return parse
 
@@ -102,8 +103,8 @@ def add_parameters(g) -> None:
         text = re.sub(r"\b(" + "|".join(n for n in flags if n != p.name) + r")\b", lambda m: flags[m[1]], p.help)
         shown = p.auto or (p.default if isinstance(p.default, str) else f"{p.default:g}")
         convert = _TYPES[p.spec["type"]]
-        g.add_argument(p.flag, dest=p.name, type=_or_auto(convert) if p.default is None and p.auto else convert,
-                       default=None,
+        words = p.spec.get("words")
+        g.add_argument(p.flag, dest=p.name, type=_with_words(convert, words) if words else convert, default=None,
                        choices=p.spec.get("choices"), help=_escape(f"{text.rstrip('.')} (default: {shown})"))
 
 

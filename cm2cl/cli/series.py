@@ -36,7 +36,7 @@ def command(args, params: ADMMParams) -> int:
     out = Path(args.output)
     if args.save_psf and not params.psf_refine:
         raise InputError("--save-psf: writes the self-calibrated PSF; give --psf-refine ROUNDS as well")
-    if params.psf_refine and args.padding == "support":
+    if params.psf_refine and params.psf_refine != "auto" and args.padding == "support":
         raise InputError("--psf-refine: not with --padding support (the PSF is refined on the first frame's full "
                          "padded grid)")
     check_bin(args.bin)
@@ -56,8 +56,11 @@ def command(args, params: ADMMParams) -> int:
         layout(args, shape[0], shape[1:], dt, backend_of(args)[0], params, solver_kw.get("padded_shape"))
     record = {"what": "cm2cl reconstruction series", "psf": str(args.psf), "params": params.as_dict(),
               "frames": [f"{f.path}[{f.index}]" for f in series.frames[:1000]], "scale": wp.scale, "prep": prep}
-    # N rounds, or auto (None) where it can refine: frame 0 decides, once for every frame
-    refine = params.psf_refine or (params.psf_refine is None and args.padding != "support")
+    from ..solver.api import auto_skipped
+
+    # N rounds, or 'auto' where it can check: frame 0 decides, once for every frame
+    refine = params.psf_refine and (params.psf_refine != "auto"
+                                    or auto_skipped(h, solver_kw.get("padded_shape"), args.padding == "support") is None)
     if refine:
         from ..jobs.refine import refined_psf_path
 
@@ -93,7 +96,7 @@ def _refined(args, params, series, h, store, key, frame_prep, solver_kw, dt, wp)
     """The PSF stack every frame is solved with under --psf-refine (:func:`cm2cl.jobs.refine.series_psf`)."""
     from ..jobs.refine import refined_psf_path, series_psf
 
-    if not args.quiet and params.psf_refine:
+    if not args.quiet and params.psf_refine != "auto":
         print(f"cm2cl: the PSF is refined on frame 0 ({params.psf_refine} rounds) unless '{refined_psf_path(args.output)}' "
               "holds this job's", file=sys.stderr)
     solve_kw = {"dtype": dt, "backend": args.backend, "device": devices_arg(args.device)[0], **solver_kw}

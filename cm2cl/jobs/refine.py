@@ -2,7 +2,7 @@
 series' first frame (:mod:`cm2cl.solver.psf_refine`), kept beside the store as ``OUT.psf.ome.tif`` with the
 job's fingerprint. A resumed job reads it back, so that every frame of a store is solved with the same
 stack; a store with finished frames and no such file (deleted, or another job's) is refused before any
-work. With ``psf_refine`` None (auto) frame 0's check decides (:func:`cm2cl.reconstruct`): where its views
+work. With ``psf_refine='auto'`` frame 0's check decides (:func:`cm2cl.reconstruct`): where its views
 agree with the PSF no file is made and every frame is solved with the given stack; the check is
 deterministic, so a resumed job decides as the first run did. Used by ``cm2cl reconstruct FRAMES -o OUT.ome.zarr --psf-refine N`` and :func:`reconstruct_series`."""
 
@@ -50,14 +50,15 @@ def series_psf(output, key: str, series, h, store, prepare, params, *, solve_kw:
         if (meta.get("extra") or {}).get("job") == key and psf.shape == tuple(h.shape):
             log.info("the PSF refined on frame 0 is read back from '%s'", path)
             return np.asarray(psf, np.float64), True
-    auto = params.psf_refine is None
+    auto = params.psf_refine == "auto"
     if len(store.missing()) < len(series) and not auto:
         _missing(path, output)
     if auto:
         log.info("checking on frame 0 whether the PSF needs refining (psf_refine auto)")
     else:
         log.info("refining the PSF on frame 0 (%d rounds)", params.psf_refine)
-    rec = reconstruct(prepare(series.read(0)), h, **solve_kw, **params.as_dict())
+    # auto: the check alone where it finds the views in agreement (the frame's own solve is the series')
+    rec = reconstruct(prepare(series.read(0)), h, **solve_kw, **params.as_dict(), _check_only=auto)
     if not rec.info["psf_refine"]["refined"]:   # auto, and frame 0's views agree with the PSF: no file
         log.info("psf_refine auto: frame 0's views agree with the PSF (%s); every frame is solved with it as given",
                  _why(rec.info["psf_refine"]))

@@ -89,7 +89,10 @@ def reconstruct_series(frames, psf, output, *, client=None, devices=None, warm_s
                          frame_interval_s=frame_interval_s, levels=pyramid, ngff=ngff) as store:
         from dataclasses import replace
 
-        if prm.psf_refine != 0:   # N rounds, or None (auto): frame 0 decides, once for every frame
+        from ..solver.api import auto_skipped
+
+        # N rounds, or 'auto' where it can check: frame 0 decides, once for every frame
+        if prm.psf_refine and (prm.psf_refine != "auto" or auto_skipped(h, padded_shape) is None):
             from .refine import series_psf
 
             h, _ = series_psf(output, key, series, h, store, frame_prep, prm, voxel_size_um=vs, depths_um=d,

@@ -165,9 +165,9 @@ def reconstruct_tiled(measurement, psf, tile, halo=None, *, progress=None, **kw)
     for bad in ("normalize", "padded_shape", "padding", "x0"):
         if bad in kw:
             raise InputError(f"{bad}: not available with lateral tiles")
-    if kw.get("psf_refine"):
+    if kw.get("psf_refine") not in (None, 0, "auto"):
         raise InputError("psf_refine: not available with lateral tiles (the PSF is refined on the whole frame)")
-    # auto (None) does not refine tiles: a tile's few views would each decide for themselves
+    # 'auto' does not refine tiles: a tile's few views would each decide for themselves
     kw = {**kw, "psf_refine": 0}
     plan = plan_tiles(y.shape, psf, tile, halo)
     # the whole frame's normalisation and weights (module doc)

@@ -11,7 +11,7 @@ from .. import validate
 from ..device.fft import resolve_backend
 from ..device.runtime import get_runtime
 from ..errors import InputError
-from .admm import ADMMSolver, pixel_weights
+from .admm import ADMMSolver, _padded_arg, pixel_weights
 from .params import check_keywords, with_parameters
 
 log = logging.getLogger(__name__)
@@ -111,7 +111,7 @@ def reconstruct(measurement, psf, *, dtype=np.float32, backend: str = "auto", de
                 max_slab_planes: int | None = None, devices=None, max_memory=None, stream="auto",
                 overlap="auto", lean="auto", voxel_size_um=None, depths_um=None,
                 weights=None, padding: str = "full", callback=None, callback_every: int = 1,
-                x0=None, camera=None, **params) -> Reconstruction:
+                x0=None, camera=None, _check_only=False, **params) -> Reconstruction:
     prm = check_keywords("reconstruct", params)
     psf = validate.psf_stack(validate.image_array(psf, "psf"), "psf")
     y = validate.real_array(validate.image_array(measurement, "measurement", ndims=(2,)), "measurement", ndims=(2,))
@@ -129,11 +129,11 @@ def reconstruct(measurement, psf, *, dtype=np.float32, backend: str = "auto", de
         from .forward import support_padding
 
         psf, padded_shape, pad_info = support_padding(psf, fft_backend(backend, device))
-    if prm.psf_refine and pad_info is not None:
+    auto = prm.psf_refine == "auto"
+    if prm.psf_refine and not auto and pad_info is not None:
         raise InputError("psf_refine: not with padding='support' (the refined PSF reaches past the measured "
                          "support); use padding='full'")
-    auto = prm.psf_refine is None
-    skipped = _auto_skipped(psf, padded_shape, pad_info) if auto else None
+    skipped = auto_skipped(psf, padded_shape, pad_info is not None) if auto else None
 
     done = [0]   # iterations of the refinement's rounds before this solve: the callback's rows count on
 
@@ -146,8 +146,8 @@ def reconstruct(measurement, psf, *, dtype=np.float32, backend: str = "auto", de
         done[0] += rec.iterations
         return solver, rec
 
-    if prm.psf_refine or (auto and skipped is None):
-        solver, rec = _refined(solve, y, psf, weights, prm, padded_shape, x0)
+    if (prm.psf_refine and not auto) or (auto and skipped is None):
+        solver, rec = _refined(solve, y, psf, weights, prm, padded_shape, x0, check_only=_check_only)
     else:
         solver, rec = solve(psf, replace(prm, psf_refine=0), padded_shape, x0)
         if auto:
@@ -158,43 +158,47 @@ def reconstruct(measurement, psf, *, dtype=np.float32, backend: str = "auto", de
     return rec
 
 
-def _auto_skipped(psf, padded_shape, pad_info) -> str | None:
-    """Why ``psf_refine=None`` (auto) does not check the views here, or None: a PSF of one view (a diffuser's
-    caustic or a single lens: nothing to disagree), padding='support' (the refined PSF would reach past the
+def auto_skipped(psf, padded_shape=None, support: bool = False) -> str | None:
+    """Why ``psf_refine='auto'`` does not check the views here, or None: a PSF of one view (a diffuser's
+    caustic or a single lens: nothing to disagree) or whose pieces are not views through its depth
+    (:func:`.psf_refine.views_through_depth`), padding='support' (the refined PSF would reach past the
     measured support), or a check that would need more than half the host's available memory (its float64
     lenslet images on the padded grid)."""
     from . import psf_refine as R
     from .forward import choose_padded_shape
     from .memory import host_available_bytes
 
-    if pad_info is not None:
+    if support:
         return "padding='support'"
     labels = R.lenslet_labels(psf)
     n = int(labels.max())
     if n < 2:
         return "the PSF has one view"
-    P = padded_shape if padded_shape is not None else choose_padded_shape(psf.shape[1:], "cl")
+    if not R.views_through_depth(psf, labels):
+        return "the PSF's pieces are not views through its depth"
+    P = _padded_arg(padded_shape) if padded_shape is not None else choose_padded_shape(psf.shape[1:], "cl")
     need = 8 * int(P[0]) * int(P[1]) * (3 * psf.shape[0] + n + 4)
     if need > host_available_bytes() // 2:
         log.warning("psf_refine auto: the view check needs %.1f GiB of host memory, more than half of what is "
-                    "available; the PSF is used as given (give psf_refine=0 to say so)", need / 2**30)
+                    "available; the PSF is used as given", need / 2**30)
         return f"the check needs {need / 2**30:.1f} GiB of host memory"
     return None
 
 
-def _refined(solve, y, psf, weights, prm, padded_shape, x0):
+def _refined(solve, y, psf, weights, prm, padded_shape, x0, check_only=False):
     """(solver, reconstruction) with the PSF self-calibrated (:mod:`.psf_refine`): ``prm.psf_refine`` rounds
     of a ``psf_refine_iter``-iteration solve and a kernel fit per lenslet, each solve warm-started from the
     last, then the solve to the stopping rule with the refined PSF; the record in ``info['psf_refine']``.
 
-    ``prm.psf_refine`` None (auto): the first round (a sparse solve, one kernel per lenslet) is also the check
+    ``prm.psf_refine`` 'auto': the first round (a sparse solve, one kernel per lenslet) is also the check
     (:func:`.psf_refine.view_disagreement`); when the views agree the PSF is used as given and the solve is
-    the plain one from ``x0``, else the rest of ``AUTO_ROUNDS`` rounds follow."""
+    the plain one from ``x0`` (``check_only``: the check's reconstruction is returned instead, for a series
+    that only needs the decision), else the rest of ``AUTO_ROUNDS`` rounds follow."""
     from . import psf_refine as R
 
     labels = R.lenslet_labels(psf)
     w = pixel_weights(weights, y.shape)
-    auto = prm.psf_refine is None
+    auto = prm.psf_refine == "auto"
     n = R.AUTO_ROUNDS if auto else prm.psf_refine
     inner = replace(prm, psf_refine=n, max_iter=min(prm.psf_refine_iter, prm.max_iter))
     h = np.asarray(psf, np.float64)
@@ -218,7 +222,8 @@ def _refined(solve, y, psf, weights, prm, padded_shape, x0):
                      "(threshold %.3f): %s", check["disagreement"], check["threshold"],
                      "refining" if check["refine"] else "the PSF is used as given")
             if not check["refine"]:
-                solver, rec = solve(psf, replace(prm, psf_refine=0), padded_shape, x0)
+                if not check_only:
+                    solver, rec = solve(psf, replace(prm, psf_refine=0), padded_shape, x0)
                 rec.info["psf_refine"] = {"mode": "auto", "refined": False, "rounds": 0, "check": check,
                                           "iterations_total": check["iterations"] + rec.iterations}
                 return solver, rec
@@ -268,4 +273,4 @@ def fft_backend(backend, device) -> str:
     return resolve_backend(backend, get_runtime(device))
 
 
-__all__ = ["reconstruct", "fft_backend", "check_scale"]
+__all__ = ["reconstruct", "fft_backend", "check_scale", "auto_skipped"]

@@ -153,20 +153,19 @@ class ADMMParams:
     l1_reweight_eps: float = _param(
         0.1, {"type": "float", "min": 0, "max": 10, "exclusive": True},
         "eps of the reweighted l1 as a fraction of the volume's maximum.", flag=True)
-    # None (auto): refine where the lenslets' views disagree with the PSF (docs/psf_refine.md); 12 rounds then
-    psf_refine: int | None = _param(
-        None, {"type": "int", "min": 0, "max": 20},
+    # 0 by default: 'auto' cannot tell a PSF that does not match from emitters between planes (docs/psf_refine.md)
+    psf_refine: int | str = _param(
+        0, {"type": "int", "min": 0, "max": 20, "words": ("auto",)},
         "Rounds of PSF self-calibration (cm2cl.solver.psf_refine): after a solve of psf_refine_iter iterations, "
         "each lenslet's PSF is convolved with a small non-negative kernel fitted to the measurement (its local "
         "blur, shift and gain), and the volume is solved again from the last one; after the rounds the final "
         "solve runs to the stopping rule with the refined PSF (rec.psf, info['psf_refine']). For a PSF that "
-        "does not match the sample's optics (aberrations, vignetting, focus); 0: the PSF as given.",
-        unit="rounds", flag=True,
-        auto="automatic ('auto' on the command line): the first round is run as a check, and the rest of 12 rounds follow only when the lenslets' "
-             "views disagree with the PSF (separate kernels per lenslet explain more than 2.5% of the misfit beyond "
-             "one common kernel, info['psf_refine']['check']); otherwise the PSF is used as given and the solve is "
-             "the plain one. Off for a PSF of one view (a diffuser, a single lens), with padding='support', lateral "
-             "tiles, or where the check would not fit in host memory")
+        "does not match the sample's optics (aberrations, vignetting, focus); 0: the PSF as given. 'auto': the "
+        "first round runs as a check, and the rest of 12 rounds follow only when the lenslets' views disagree "
+        "with the PSF (separate kernels per lenslet explain more than 2.5% of the misfit beyond one common kernel, "
+        "with an F statistic above 1.25; info['psf_refine']['check']), else the plain solve runs; 'auto' does "
+        "not refine a PSF of one view (a diffuser, a single lens), with padding='support' or lateral tiles.",
+        unit="rounds", flag=True)
     psf_refine_iter: int = _param(
         100, {"type": "int", "min": 1}, "Iterations of each solve before a PSF refinement round.", unit=_ITERS,
         flag=True)

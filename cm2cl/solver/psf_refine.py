@@ -45,12 +45,18 @@ RIDGE = 1e-3
 #: over-relaxation of each kernel update (measured on docs/quality.md's mismatch scenes: 1.7 converged in
 #: 4-6 rounds where 1.0 needed more than 10)
 OVERRELAX = 1.7
+#: a footprint piece of n is a view in a plane where it holds more than VIEW_SHARE / n of the plane's light
+VIEW_SHARE = 0.2
 #: psf_refine=None (auto): the rounds run when the views disagree (docs/psf_refine.md's schedule)
 AUTO_ROUNDS = 12
 #: psf_refine=None (auto): refine when separate kernels per lenslet explain more than this fraction of the
 #: misfit beyond one common kernel (:func:`view_disagreement`), measured after the first round's sparse solve;
 #: on docs/psf_refine.md's 66 scenes matched PSFs gave at most 0.019 and mismatched ones at least 0.027
 VIEW_DISAGREEMENT = 0.025
+#: ... and when the F statistic of that comparison exceeds this: the 0.999 quantile of F(392, N) for the
+#: default 9 lenslets x 49 taps on any sensor of 4000 pixels or more; non-negative kernels use fewer taps on
+#: noise than they have, so the test is conservative (white noise gives F ~ 0.3); matched PSFs gave at most 0.8
+VIEW_F = 1.25
 #: design-matrix entries per chunk of sensor rows (memory of the normal equations' accumulation)
 CHUNK_ENTRIES = 1 << 23
 
@@ -73,6 +79,21 @@ def lenslet_labels(psf: np.ndarray) -> np.ndarray:
     # every pixel to its nearest piece, so that the pieces together are the whole sensor
     _, (iy, ix) = ndimage.distance_transform_edt(lab == 0, return_indices=True)
     return lab[iy, ix].astype(np.int32)
+
+
+def views_through_depth(psf: np.ndarray, labels: np.ndarray) -> bool:
+    """Whether the footprint pieces of ``labels`` (:func:`lenslet_labels`) are views of one array: at least
+    two, each holding a share of its plane's light (more than ``VIEW_SHARE`` / n of n pieces) in at least
+    half of the planes, as a lenslet's focus does wherever it moves with depth. Pieces that each hold light
+    in a plane or two (spots scattered anew in every plane) are no views that could disagree."""
+    n = int(labels.max())
+    if n < 2:
+        return False
+    psf = np.asarray(psf, np.float64)
+    total = psf.reshape(psf.shape[0], -1).sum(axis=1)
+    share = np.stack([(psf * (labels == j + 1)).reshape(psf.shape[0], -1).sum(axis=1) for j in range(n)])
+    share = share / np.where(total > 0, total, 1.0)[None, :]
+    return bool(np.all((share > VIEW_SHARE / n).sum(axis=1) >= 0.5 * psf.shape[0]))
 
 
 def depth_weights(nz: int, nodes: int) -> np.ndarray:
@@ -191,6 +212,10 @@ def apply_kernels(psf: np.ndarray, labels: np.ndarray, kernels: np.ndarray, dept
         for i in range(psf.shape[0]):
             out[i] += signal.fftconvolve(hj[i], np.tensordot(W[:, i], kj, axes=(0, 0)), mode="same")
     out = np.maximum(out, 0.0)
+    # a plane the kernels took all light from (every tap clipped) keeps the given one: the solver needs light
+    # in every plane, and the data said nothing for it
+    dark = out.reshape(out.shape[0], -1).max(axis=1) <= 0
+    out[dark] = psf[dark]
     # each plane keeps the given plane's light: a plane's overall scale and its volume's brightness trade
     # one for the other in the data, so the kernels' gains are free there (they drifted, and a plane's
     # faint beads dimmed below a detection threshold); the lenslets' gains relative to each other stay
@@ -252,25 +277,38 @@ def sensor_model(images, kernels, sensor_shape) -> np.ndarray:
 
 def view_disagreement(images, kernels, target, sensor_shape, radius: int, weights=None) -> dict:
     """How much the lenslets' views disagree with the PSF, from one fit of a kernel per lenslet (``kernels``,
-    :func:`fit_kernels` on ``images`` F_j, one depth node): the fraction of the weighted misfit that separate
-    kernels explain beyond one kernel common to every lenslet,
+    :func:`fit_kernels` on ``images`` F_j, one depth node), against one kernel common to every lenslet:
 
-        d = (S_common - S_separate) / S_common,   S = sum_p w_p (target_p - (C sum_j k_j (*) F_j)_p)^2.
+        S = sum_p w_p (target_p - (C sum_j k_j (*) F_j)_p)^2   (S_sep: a kernel per lenslet, S_com: one for all)
+        d = (S_com - S_sep) / S_com                            (the misfit the separate kernels explain)
+        F = ((S_com - S_sep) / (p_sep - p_com)) / (S_sep / (N - p_sep))
 
-    A kernel common to all lenslets is a blur, shift or gain of the whole PSF, which the volume can absorb
-    (a bead's own size, a global defocus blur): it leaves no ghosts. Lenslets that need different kernels
-    (aberrations that differ between lenslets, vignetting, a field stop) disagree about where an emitter is,
-    and a least-squares volume explains the disagreement with spurious emitters: what psf_refine corrects.
-    Returns ``{'disagreement': d, 'refine': d > VIEW_DISAGREEMENT, 'threshold', 'lenslets', 'gains'}``."""
+    with p the kernels' taps and N the pixels of non-zero weight. A kernel common to all lenslets is a blur,
+    shift or gain of the whole PSF, which the volume can absorb (a bead's own size, a global defocus blur): it
+    leaves no ghosts. Lenslets that need different kernels (aberrations that differ between lenslets,
+    vignetting, a field stop) disagree about where an emitter is, and a least-squares volume explains the
+    disagreement with spurious emitters: what psf_refine corrects. F is the F statistic of the nested fits:
+    below 1 where the extra kernels fit only white noise (non-negative kernels use fewer taps than they have),
+    though they still remove a share of the misfit that on a small sensor is several per cent; d is the
+    effect's size, which on a large sensor
+    stays small for a mismatch too slight to make ghosts while F grows with N. Refine when both exceed their
+    thresholds (VIEW_DISAGREEMENT, VIEW_F).
+    Returns ``{'disagreement': d, 'f_statistic': F, 'refine', 'threshold', 'f_threshold', 'lenslets', 'gains'}``."""
     w = np.ones(sensor_shape) if weights is None else np.asarray(weights, np.float64)
     common = images.sum(axis=0, keepdims=True)
     kc = fit_kernels(common, target, sensor_shape, radius, w)
     s_sep = float(np.sum(w * (target - sensor_model(images, kernels, sensor_shape)) ** 2))
     s_com = float(np.sum(w * (target - sensor_model(common, kc, sensor_shape)) ** 2))
+    taps = (2 * radius + 1) ** 2
+    p_sep, p_com = images.shape[0] * taps, taps
+    dof = int(np.count_nonzero(w > 0)) - p_sep
     d = (s_com - s_sep) / s_com if s_com > 0 else 0.0
-    return {"disagreement": d, "refine": bool(d > VIEW_DISAGREEMENT), "threshold": VIEW_DISAGREEMENT,
-            "lenslets": int(images.shape[0]), "gains": [float(g) for g in kernels.sum(axis=(1, 2))]}
+    f = ((s_com - s_sep) / max(p_sep - p_com, 1)) / (s_sep / dof) if s_sep > 0 and dof > 0 else 0.0
+    return {"disagreement": d, "f_statistic": f, "refine": bool(d > VIEW_DISAGREEMENT and f > VIEW_F),
+            "threshold": VIEW_DISAGREEMENT, "f_threshold": VIEW_F, "lenslets": int(images.shape[0]),
+            "gains": [float(g) for g in kernels.sum(axis=(1, 2))]}
 
 
 __all__ = ["lenslet_labels", "depth_weights", "round_schedule", "lenslet_images", "fit_kernels", "relax", "apply_kernels",
-           "kernel_summary", "refine_step", "sensor_model", "view_disagreement", "AUTO_ROUNDS", "VIEW_DISAGREEMENT"]
+           "kernel_summary", "refine_step", "sensor_model", "view_disagreement", "views_through_depth", "AUTO_ROUNDS", "VIEW_DISAGREEMENT",
+           "VIEW_F"]
