@@ -43,6 +43,7 @@ def series_psf(output, key: str, series, h, store, prepare, params, *, solve_kw:
     layout)."""
     from .. import io
     from ..solver import reconstruct
+    from ..solver.api import psf_check
 
     path = refined_psf_path(output)
     if path.exists():
@@ -58,7 +59,7 @@ def series_psf(output, key: str, series, h, store, prepare, params, *, solve_kw:
     else:
         log.info("refining the PSF on frame 0 (%d rounds)", params.psf_refine)
     # auto: the check alone where it finds the views in agreement (the frame's own solve is the series')
-    rec = reconstruct(prepare(series.read(0)), h, **solve_kw, **params.as_dict(), _check_only=auto)
+    rec = (psf_check if auto else reconstruct)(prepare(series.read(0)), h, **solve_kw, **params.as_dict())
     if not rec.info["psf_refine"]["refined"]:   # auto, and frame 0's views agree with the PSF: no file
         log.info("psf_refine auto: frame 0's views agree with the PSF (%s); every frame is solved with it as given",
                  _why(rec.info["psf_refine"]))

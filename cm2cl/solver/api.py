@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextvars
 import logging
 from dataclasses import replace
 
@@ -15,6 +16,9 @@ from .admm import ADMMSolver, _padded_arg, pixel_weights
 from .params import check_keywords, with_parameters
 
 log = logging.getLogger(__name__)
+
+#: set by :func:`psf_check`: psf_refine='auto' returns the check's reconstruction when it does not refine
+_CHECK_ONLY = contextvars.ContextVar("cm2cl_psf_check_only", default=False)
 
 #: reconstruct()'s docstring; the solver parameters' entries are made from their declaration (ADMMParams)
 _DOC = """Reconstruct a 3D volume from one CM2 measurement (paper Eq. 4) on an OpenCL device.
@@ -111,7 +115,7 @@ def reconstruct(measurement, psf, *, dtype=np.float32, backend: str = "auto", de
                 max_slab_planes: int | None = None, devices=None, max_memory=None, stream="auto",
                 overlap="auto", lean="auto", voxel_size_um=None, depths_um=None,
                 weights=None, padding: str = "full", callback=None, callback_every: int = 1,
-                x0=None, camera=None, _check_only=False, **params) -> Reconstruction:
+                x0=None, camera=None, **params) -> Reconstruction:
     prm = check_keywords("reconstruct", params)
     psf = validate.psf_stack(validate.image_array(psf, "psf"), "psf")
     y = validate.real_array(validate.image_array(measurement, "measurement", ndims=(2,)), "measurement", ndims=(2,))
@@ -147,7 +151,7 @@ def reconstruct(measurement, psf, *, dtype=np.float32, backend: str = "auto", de
         return solver, rec
 
     if (prm.psf_refine and not auto) or (auto and skipped is None):
-        solver, rec = _refined(solve, y, psf, weights, prm, padded_shape, x0, check_only=_check_only)
+        solver, rec = _refined(solve, y, psf, weights, prm, padded_shape, x0, check_only=_CHECK_ONLY.get())
     else:
         solver, rec = solve(psf, replace(prm, psf_refine=0), padded_shape, x0)
         if auto:
@@ -183,6 +187,18 @@ def auto_skipped(psf, padded_shape=None, support: bool = False) -> str | None:
                     "available; the PSF is used as given", need / 2**30)
         return f"the check needs {need / 2**30:.1f} GiB of host memory"
     return None
+
+
+def psf_check(measurement, psf, **kw) -> Reconstruction:
+    """:func:`reconstruct` with ``psf_refine='auto'`` (``kw`` its other keywords) that stops after the check
+    where the views agree with the PSF: its ``info['psf_refine']`` says whether it refined (then it is the
+    whole refined reconstruction, ``rec.psf`` the stack) or not (then the volume is the check's sparse solve,
+    no answer: a series only needs the decision before it solves every frame)."""
+    token = _CHECK_ONLY.set(True)
+    try:
+        return reconstruct(measurement, psf, **{**kw, "psf_refine": "auto"})
+    finally:
+        _CHECK_ONLY.reset(token)
 
 
 def _refined(solve, y, psf, weights, prm, padded_shape, x0, check_only=False):
@@ -273,4 +289,4 @@ def fft_backend(backend, device) -> str:
     return resolve_backend(backend, get_runtime(device))
 
 
-__all__ = ["reconstruct", "fft_backend", "check_scale", "auto_skipped"]
+__all__ = ["reconstruct", "fft_backend", "check_scale", "auto_skipped", "psf_check"]
