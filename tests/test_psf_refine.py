@@ -404,9 +404,10 @@ def test_auto_does_not_check_where_it_cannot_refine(rt):
         reconstruct_tiled(y1, psf, (24, 24), max_iter=10, psf_refine=2)
 
 
-def test_cli_psf_refine_takes_auto_and_zero(rt, tmp_path):
-    """--psf-refine auto is the default's word; --psf-refine 0 turns the check off; a word that is neither
-    a number nor 'auto' is one line and exit 2."""
+def test_cli_psf_refine_takes_auto_and_zero(rt, tmp_path, capsys):
+    """--psf-refine auto checks first and refines here (each lenslet blurred and shifted by its own kernel),
+    and the summary says so with what the check measured; --psf-refine 0 (the default) neither checks nor
+    refines; a word that is neither a number nor 'auto' is refused by the parser (exit 2), before any output."""
     import json
 
     import tifffile
@@ -423,6 +424,11 @@ def test_cli_psf_refine_takes_auto_and_zero(rt, tmp_path):
         assert main(base + ["-o", str(out), "--psf-refine", word]) == 0
         info = json.loads((tmp_path / f"v{word}.cm2cl.json").read_text())["info"]
         assert (info.get("psf_refine") or {}).get("refined", False) is refined, info.get("psf_refine")
+        said = capsys.readouterr().out
+        if refined:   # the summary says what the check measured and that it refined
+            assert "PSF refined in 12 rounds" in said and "views disagree with the PSF" in said, said
+        else:
+            assert "PSF refined" not in said and "PSF used as given" not in said, said
     with pytest.raises(SystemExit) as e:
         main(base + ["-o", str(tmp_path / "w.ome.tif"), "--psf-refine", "some"])
     assert e.value.code == 2 and not (tmp_path / "w.ome.tif").exists()
@@ -457,3 +463,16 @@ def test_series_auto_decides_on_frame_0_once(rt, tmp_path):
     vol = np.asarray(zarr.open_group(str(tmp_path / "a.ome.zarr"), mode="r")["0"])
     one = cm2cl.reconstruct(frames[1], psf, **kw).volume
     np.testing.assert_allclose(vol[1], one, rtol=1e-5, atol=1e-6 * one.max())
+
+
+def test_refine_line_says_what_the_refinement_did():
+    from cm2cl.cli.frame import refine_line
+
+    check = {"refine": False, "disagreement": 0.004, "threshold": 0.025, "f_statistic": 0.3, "f_threshold": 1.25}
+    assert refine_line(None) == ""
+    assert refine_line({"refined": False, "check": check}).startswith("PSF used as given: --psf-refine auto: the "
+                                                                      "lenslets' views agree")
+    assert "0.004 of the misfit" in refine_line({"refined": False, "check": check})
+    assert refine_line({"refined": False, "skipped": "padding='support'"}).endswith("(padding='support')")
+    line = refine_line({"refined": True, "rounds": 4, "iterations_total": 500, "check": None})
+    assert line == "PSF refined in 4 rounds (500 iterations in all)"

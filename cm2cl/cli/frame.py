@@ -237,6 +237,22 @@ def _write(args, outset, rec, dt, how):
     return vol
 
 
+def refine_line(record) -> str:
+    """One line on what --psf-refine did (``info['psf_refine']``), or '' without it."""
+    if not record:
+        return ""
+    check = record.get("check")
+    test = (f"the lenslets' views {'disagree' if check['refine'] else 'agree'} with the PSF: separate kernels "
+            f"explain {check['disagreement']:.3f} of the misfit (threshold {check['threshold']:g}), F "
+            f"{check['f_statistic']:.2f} (threshold {check['f_threshold']:g})") if check else ""
+    if record.get("refined"):
+        head = f"PSF refined in {record['rounds']} rounds ({record['iterations_total']} iterations in all)"
+        return head + (f"; --psf-refine auto: {test}" if test else "")
+    if record.get("skipped"):
+        return f"PSF used as given: --psf-refine auto does not check here ({record['skipped']})"
+    return f"PSF used as given: --psf-refine auto: {test}"
+
+
 def _report(out, outset, rec, how, vol):
     last, info = rec.log[-1], rec.info
     scale = "voxel {:g} x {:g} x {:g} um (z, y, x; {})".format(*rec.voxel_size_um, how) if rec.voxel_size_um else how
@@ -260,6 +276,9 @@ def _report(out, outset, rec, how, vol):
                else " resident") for p in lay)
             + f"; {info['moved_bytes'] / 1e9:.2f} GB moved between host and devices, "
               f"{info['device_bytes'] / 2**30:.2f} GiB on the devices, peak host RSS {rss / 2**30:.2f} GiB")
+    line = refine_line(info.get("psf_refine"))
+    if line:
+        print("  " + line)
     px = info.get("pixels") or {}
     for name in ("saturated", "hot"):
         c = px.get(name, {}).get("count", 0)
