@@ -63,8 +63,12 @@ def run_variant(name, sim, label, var, kw, marks, ts, img_dir) -> dict:
     from cm2cl.solver.admm import ADMMSolver
     from cm2cl.solver.params import ADMMParams
 
+    from cm2cl.solver.attenuation import attenuate
+
     dtype = kw.pop("dtype", np.float32)
-    s = ADMMSolver(sim.psf, ADMMParams(**kw), dtype=dtype)
+    prm = ADMMParams(**kw)
+    psf, _ = attenuate(sim.psf, sim.depths_um, prm)   # the 'scattering' variant: the sample's l_s in the model
+    s = ADMMSolver(psf, prm, dtype=dtype)
     trace = []
 
     def score(x):
@@ -95,7 +99,7 @@ def main(argv=None):
     ap.add_argument("--scenes", default="fig3_beads,fig5_scattering")
     ap.add_argument("--max-iter", type=int, default=None, help="default: the solver's default")
     ap.add_argument("--trace", default="", help="comma list of iterations at which the iterate is scored too")
-    ap.add_argument("--variants", default="default", help="comma list of: default, tv0, dtype64, points")
+    ap.add_argument("--variants", default="default", help="comma list of: default, tv0, dtype64, points, scattering")
     ap.add_argument("--binning", type=int, default=None, help="sensor binning (default: the scene's own)")
     ap.add_argument("--doc", default=str(DOCS / "paper_scenes.md"))
     args = ap.parse_args(argv)
@@ -105,7 +109,8 @@ def main(argv=None):
     marks = {int(v) for v in args.trace.split(",") if v.strip()}
     variants = {"default": ("defaults", {}), "tv0": ("TV off (tv 0, l1 default; = --prior points)", {"tv": 0.0}),
                 "dtype64": ("defaults, float64", {"dtype": np.float64}),
-                "points": ("TV off, l1 per plane ~ ||h_i||^2 (= --prior points-weighted)", {"tv_noise_ratio": 0.0, "l1_plane_power": 2.0})}
+                "points": ("TV off, l1 per plane ~ ||h_i||^2 (= --prior points-weighted)", {"tv_noise_ratio": 0.0, "l1_plane_power": 2.0}),
+                "scattering": ("defaults, --scattering-length-um the scene's l_s", {"scattering_length_um": "scene"})}
     for name in args.scenes.split(","):
         t = time.perf_counter()
         sim = simulate.simulate_scene(scene_at(name, args.binning))
@@ -114,6 +119,14 @@ def main(argv=None):
             label, extra = variants[var]
             label += f", sensor binned {args.binning}x" if args.binning else ""
             kw = dict(extra) if args.max_iter is None else {"max_iter": args.max_iter, **extra}
+            if kw.get("scattering_length_um") == "scene":   # the l_s (and surface) the scene was simulated with
+                eff = [e for e in scene_at(name, args.binning).get("effects", []) if e.get("name") == "scattering"]
+                if not eff:
+                    raise SystemExit(f"--variants scattering: scene {name} has no scattering effect")
+                kw["scattering_length_um"] = float(eff[0]["ls_um"])
+                if eff[0].get("surface_z_um") is not None:
+                    kw["surface_um"] = float(eff[0]["surface_z_um"])
+                label = label.replace("the scene's l_s", f"{kw['scattering_length_um']:g}")
             rows.append(run_variant(name, sim, label, var, kw, marks, ts, img_dir))
             print(rows[-1], flush=True)
     from cm2cl.device import get_runtime

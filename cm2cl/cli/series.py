@@ -48,6 +48,9 @@ def command(args, params: ADMMParams) -> int:
     ex = executor(args)
     h, solver_kw, prep = _grid(args, wp.h, off, psf_off, ex.devices[0])
     dt = np.dtype(args.dtype)
+    from ..solver import attenuation
+
+    attenuation.check(params, wp.depths_um, h.shape[0])   # before the store exists
     key = fingerprint(h, params, series, dt, args.backend, prep)
     shape = (h.shape[0],) + tuple(n // args.bin for n in series.shape)
     if not args.scheduler:   # a frame that cannot fit (--stream never, --max-memory) is refused before the store
@@ -74,6 +77,9 @@ def command(args, params: ADMMParams) -> int:
         if refine:
             h = _refined(args, params, series, h, store, key, frame_prep, solver_kw, dt, wp)
         params = replace(params, psf_refine=0)
+        from ..solver.attenuation import attenuate
+
+        h, _ = attenuate(h, wp.depths_um, params)   # every frame's model (the refinement attenuated its own)
         progress = FrameProgress(len(store.missing()), args.quiet, every=args.progress_every)
         try:
             s = run_series(series, h, store, params=params, key=key, executor=ex, dtype=dt, backend=args.backend,

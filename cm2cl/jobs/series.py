@@ -78,6 +78,9 @@ def reconstruct_series(frames, psf, output, *, client=None, devices=None, warm_s
         solver_kw["padded_shape"] = tuple(int(n) for n in padded_shape)
     prep = {"offset": offset, "bin": 1, "padding": "full", "warm_start": bool(warm_start),
             "padded_shape": solver_kw.get("padded_shape")}
+    from ..solver import attenuation
+
+    attenuation.check(prm, d, h.shape[0])   # before the store exists
     key = fingerprint(h, prm, series, dt, backend, prep)
     record = {"what": "cm2cl reconstruction series (Python)", "params": prm.as_dict(), "prep": prep,
               "frames": [f"{f.path}[{f.index}]" for f in series.frames[:1000]]}
@@ -90,6 +93,7 @@ def reconstruct_series(frames, psf, output, *, client=None, devices=None, warm_s
         from dataclasses import replace
 
         from ..solver.api import auto_skipped
+        from ..solver.attenuation import attenuate
 
         # N rounds, or 'auto' where it can check: frame 0 decides, once for every frame
         if prm.psf_refine and (prm.psf_refine != "auto" or auto_skipped(h, padded_shape) is None):
@@ -99,6 +103,7 @@ def reconstruct_series(frames, psf, output, *, client=None, devices=None, warm_s
                               solve_kw={"dtype": dt, "backend": backend, "device": (devices or [None])[0],
                                         **solver_kw})
         prm = replace(prm, psf_refine=0)
+        h, _ = attenuate(h, d, prm)   # every frame's model: the stack scaled by its planes' ballistic fractions
         return run_series(series, h, store, params=prm, key=key, executor=ex, dtype=dt, backend=backend,
                           prepare=frame_prep, progress=progress, solver_kw=solver_kw)
 

@@ -169,13 +169,17 @@ def reconstruct_tiled(measurement, psf, tile, halo=None, *, progress=None, **kw)
         raise InputError("psf_refine: not available with lateral tiles (the PSF is refined on the whole frame)")
     # 'auto' does not refine tiles: a tile's few views would each decide for themselves
     kw = {**kw, "psf_refine": 0}
+    from ..solver.attenuation import attenuate
+
+    names = {f.name for f in fields(ADMMParams)}
+    psf, _ = attenuate(psf, kw.get("depths_um"), ADMMParams.from_kwargs(**{k: v for k, v in kw.items() if k in names}))
+    kw = {**kw, "scattering_length_um": None, "surface_um": None}
     plan = plan_tiles(y.shape, psf, tile, halo)
     # the whole frame's normalisation and weights (module doc)
     h = np.asarray(psf, np.float64)
     sh = 1.0 / operator_norm(h)
     ymax = float(np.max(np.abs(y)))
     sy = 1.0 / ymax if ymax > 0 else 1.0
-    names = {f.name for f in fields(ADMMParams)}
     p = ADMMParams.from_kwargs(**{k: v for k, v in kw.items() if k in names})
     scale = ProblemScale.of(np.asarray(y, np.float64) * sy, float(np.sum((h * sh) ** 2)), h.shape[0])
     l1, tv = scale.weights(p)

@@ -13,6 +13,7 @@ from ..device.fft import resolve_backend
 from ..device.runtime import get_runtime
 from ..errors import InputError
 from .admm import ADMMSolver, _padded_arg, pixel_weights
+from .attenuation import attenuate, unattenuate
 from .params import check_keywords, with_parameters
 
 log = logging.getLogger(__name__)
@@ -123,6 +124,7 @@ def reconstruct(measurement, psf, *, dtype=np.float32, backend: str = "auto", de
         raise InputError(f"measurement: shape {y.shape} does not match the PSF's sensor grid "
                          f"{psf.shape[1:]} (psf shape {psf.shape})")
     vs, d = check_scale(voxel_size_um, depths_um, psf.shape[0])
+    psf, attenuation = attenuate(psf, d, prm)
     y, weights, cam = _camera(y, weights, camera)
     pad_info = None
     if padding not in ("full", "support"):
@@ -159,6 +161,10 @@ def reconstruct(measurement, psf, *, dtype=np.float32, backend: str = "auto", de
     rec.voxel_size_um, rec.depths_um = vs, d
     rec.info["padding"] = pad_info or {"padded_shape": list(solver.P), "support_px": None}
     rec.info["camera"] = cam
+    if attenuation is not None:
+        rec.info["attenuation"] = attenuation
+        if rec.psf is not None:   # the refined stack in the given (clear-medium) PSF's units
+            rec.psf = unattenuate(rec.psf, attenuation)
     return rec
 
 

@@ -1,0 +1,70 @@
+"""Attenuation by a scattering sample in the forward model: each plane's PSF scaled by its ballistic fraction.
+
+A calibration PSF is measured in a clear medium. In a scattering sample an emitter at depth d below the
+surface reaches the sensor with only the fraction exp(-d / l_s) of its light as the sharp, ballistic image
+(l_s the scattering mean free path); the rest is scattered into a halo the PSF does not have (the
+background term takes its smooth part). The forward model of such a sample is therefore
+
+    y = C sum_i a_i H_i x_i + b,      a_i = exp(-max(0, z_i - z_surface) / l_s)
+
+and the volume x holds each emitter's brightness before the attenuation, so that a deep emitter reads as
+bright as a shallow one of the same brightness; without it the deep planes are dimmed by a_i and fall
+below any detection threshold relative to the volume's peak (docs/paper_scenes.md, fig5_scattering).
+Depth increases with z (the planes' ``depths_um``), as in cm2cl's simulator (cm2cl.simulate.effects).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..errors import InputError
+
+__all__ = ["ballistic_fractions", "check", "attenuate", "unattenuate"]
+
+
+def ballistic_fractions(depths_um, scattering_length_um: float, surface_um: float | None = None) -> np.ndarray:
+    """(nz,) a_i = exp(-max(0, z_i - surface) / l_s); ``surface_um`` None: the shallowest plane."""
+    z = np.asarray(depths_um, np.float64).ravel()
+    top = float(np.min(z)) if surface_um is None else float(surface_um)
+    return np.exp(-np.clip(z - top, 0.0, None) / float(scattering_length_um))
+
+
+def check(params, depths_um, nz: int) -> bool:
+    """Whether ``params`` ask for attenuation, after checking that they can have it (one-line InputErrors:
+    a surface without a scattering length, no depths, depths that do not match the planes)."""
+    ls = getattr(params, "scattering_length_um", None)
+    if ls is None:
+        if getattr(params, "surface_um", None) is not None:
+            raise InputError("surface_um: only with scattering_length_um (the depth the attenuation starts at)")
+        return False
+    if depths_um is None:
+        raise InputError("scattering_length_um: needs the planes' depths (depths_um, or a PSF file that records "
+                         "them) to know each plane's depth below the surface")
+    if np.asarray(depths_um).size != nz:
+        raise InputError(f"scattering_length_um: {np.asarray(depths_um).size} depths for {nz} PSF planes")
+    return True
+
+
+def attenuate(psf, depths_um, params) -> tuple[np.ndarray, dict | None]:
+    """(the PSF stack with each plane scaled by its ballistic fraction, the record) for ``params``
+    (an ADMMParams: ``scattering_length_um``, ``surface_um``); the stack itself and None without a scattering
+    length. The scaled stack is a copy in the stack's own float dtype (one more stack in host memory)."""
+    if not check(params, depths_um, psf.shape[0]):
+        return psf, None
+    ls = params.scattering_length_um
+    z = np.asarray(depths_um, np.float64).ravel()
+    a = ballistic_fractions(z, ls, params.surface_um)
+    dtype = psf.dtype if np.issubdtype(psf.dtype, np.floating) else np.float64
+    out = np.asarray(psf, dtype) * a.astype(dtype)[:, None, None]
+    record = {"scattering_length_um": float(ls), "surface_um": float(np.min(z) if params.surface_um is None
+                                                                       else params.surface_um),
+              "ballistic_fraction": [float(v) for v in a]}
+    return out, record
+
+
+def unattenuate(psf, record) -> np.ndarray:
+    """An attenuated stack (e.g. the one a PSF refinement fitted) back in the clear medium's units."""
+    if not record:
+        return psf
+    a = np.asarray(record["ballistic_fraction"], np.float64)
+    return np.asarray(psf, np.float64) / a[:, None, None]
