@@ -62,7 +62,7 @@ def test_attenuation_refuses_what_it_cannot_do(rt):
     psf, y, _ = _scene()
     with pytest.raises(InputError, match="depths"):
         cm2cl.reconstruct(y, psf, scattering_length_um=LS)
-    with pytest.raises(InputError, match="surface_um: only with scattering_length_um"):
+    with pytest.raises(InputError, match="surface_um: only with a scattering length"):
         cm2cl.reconstruct(y, psf, surface_um=0.0, depths_um=DEPTHS)
     with pytest.raises(InputError, match="scattering_length_um"):
         cm2cl.reconstruct(y, psf, scattering_length_um=-5.0, depths_um=DEPTHS)

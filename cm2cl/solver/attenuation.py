@@ -35,7 +35,7 @@ def check(params, depths_um, nz: int) -> bool:
     ls = getattr(params, "scattering_length_um", None)
     if ls is None:
         if getattr(params, "surface_um", None) is not None:
-            raise InputError("surface_um: only with scattering_length_um (the depth the attenuation starts at)")
+            raise InputError("surface_um: only with a scattering length (the surface is where the attenuation starts)")
         return False
     if depths_um is None:
         raise InputError("scattering_length_um: needs the planes' depths (depths_um, or a PSF file that records "
