@@ -100,3 +100,22 @@ def test_series_and_cli_take_the_attenuation(rt, tmp_path):
     info = json.loads((tmp_path / "v.cm2cl.json").read_text())["info"]
     assert info["attenuation"]["surface_um"] == 0.0
     assert info["attenuation"]["ballistic_fraction"] == pytest.approx(list(ballistic_fractions(DEPTHS, LS, 0.0)))
+
+
+def test_tiles_solve_with_the_attenuated_stack(rt):
+    """Lateral tiles: the option is the tiled solve of the stack scaled by a_i (same bits), with the depths
+    given; without them it is refused."""
+    from cm2cl.jobs.tiles import reconstruct_tiled
+
+    nz, shape = len(DEPTHS), (64, 64)
+    yy, xx = np.mgrid[:64, :64]
+    psf = np.stack([np.exp(-((yy - 32) ** 2 + (xx - 32) ** 2) / (2 * (1 + 0.3 * i) ** 2)) for i in range(nz)])
+    x = np.zeros((nz,) + shape)
+    x[np.arange(nz), 10 + 7 * np.arange(nz), 12 + 6 * np.arange(nz)] = 1.0
+    y = Q.object_image(psf, x)
+    a = ballistic_fractions(DEPTHS, LS)
+    got, _ = reconstruct_tiled(y, psf, (32, 32), max_iter=10, depths_um=DEPTHS, scattering_length_um=LS)
+    want, _ = reconstruct_tiled(y, psf * a[:, None, None], (32, 32), max_iter=10, depths_um=DEPTHS)
+    np.testing.assert_array_equal(got, want)
+    with pytest.raises(InputError, match="depths"):
+        reconstruct_tiled(y, psf, (32, 32), max_iter=10, scattering_length_um=LS)

@@ -172,7 +172,8 @@ def reconstruct_tiled(measurement, psf, tile, halo=None, *, progress=None, **kw)
     from ..solver.attenuation import attenuate
 
     names = {f.name for f in fields(ADMMParams)}
-    psf, _ = attenuate(psf, kw.get("depths_um"), ADMMParams.from_kwargs(**{k: v for k, v in kw.items() if k in names}))
+    p = ADMMParams.from_kwargs(**{k: v for k, v in kw.items() if k in names})
+    psf, _ = attenuate(psf, kw.get("depths_um"), p)   # the whole stack once; the tiles solve with it as given
     kw = {**kw, "scattering_length_um": None, "surface_um": None}
     plan = plan_tiles(y.shape, psf, tile, halo)
     # the whole frame's normalisation and weights (module doc)
@@ -180,7 +181,6 @@ def reconstruct_tiled(measurement, psf, tile, halo=None, *, progress=None, **kw)
     sh = 1.0 / operator_norm(h)
     ymax = float(np.max(np.abs(y)))
     sy = 1.0 / ymax if ymax > 0 else 1.0
-    p = ADMMParams.from_kwargs(**{k: v for k, v in kw.items() if k in names})
     scale = ProblemScale.of(np.asarray(y, np.float64) * sy, float(np.sum((h * sh) ** 2)), h.shape[0])
     l1, tv = scale.weights(p)
     solve_kw = {k: v for k, v in kw.items() if k not in ("l1", "tv", "l1_noise_ratio", "tv_noise_ratio")}

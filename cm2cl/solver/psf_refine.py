@@ -47,9 +47,9 @@ RIDGE = 1e-3
 OVERRELAX = 1.7
 #: a footprint piece of n is a view in a plane where it holds more than VIEW_SHARE / n of the plane's light
 VIEW_SHARE = 0.2
-#: psf_refine=None (auto): the rounds run when the views disagree (docs/psf_refine.md's schedule)
+#: psf_refine='auto': the rounds run when the views disagree (docs/psf_refine.md's schedule)
 AUTO_ROUNDS = 12
-#: psf_refine=None (auto): refine when separate kernels per lenslet explain more than this fraction of the
+#: psf_refine='auto': refine when separate kernels per lenslet explain more than this fraction of the
 #: misfit beyond one common kernel (:func:`view_disagreement`), measured after the first round's sparse solve;
 #: on docs/psf_refine.md's 66 scenes matched PSFs gave at most 0.019 and mismatched ones at least 0.027
 VIEW_DISAGREEMENT = 0.025
