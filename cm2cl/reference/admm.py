@@ -22,7 +22,8 @@ def admm(y, psf, params=None, padded_shape=None, dtype=np.float64, workers=None,
 
     Same algorithm, order of updates, residuals, balancing and stopping as the device solver.
     ``workers`` is passed to scipy.fft (-1 = all cores). ``x0``: a warm start on the padded grid in the
-    volume's units (x, u and w start there, the duals at zero). ``state``: a dict that receives the
+    volume's units (x, u and w start there with their duals at zero; v at H x0 and the data dual xi at the
+    data term's gradient there). ``state``: a dict that receives the
     final iterates of the normalised problem (x, u, w, v and the duals rho, eta, xi, the TV dual p as
     px, py, pz). Returns a Reconstruction.
     """
@@ -65,6 +66,8 @@ def admm(y, psf, params=None, padded_shape=None, dtype=np.float64, workers=None,
     else:
         data = LeastSquares(cty, mask, ys, wts, M, dt)
     data.start(ctl.mu["v"])
+    if x0 is not None:   # v at H x0, the data dual at the data term's gradient there (the regularisers' at 0)
+        data.warm(irfft((Hs * rfft(x)).sum(axis=0)).astype(np.float64))
     lw = (hn / hn.mean())[:, None, None]
     l1 = ReweightedL1(x, lw, p.l1_reweight, p.l1_reweight_eps) if p.l1_reweight else L1(x, lw)
     regs = (TV(x, p.tv_iters, p.tv_axial_weight, p.tv_isotropic), l1)

@@ -27,6 +27,12 @@ class LeastSquares:
     def start(self, mu):
         self.v = (self.mask * self.cty / (self.mask + mu)).astype(self.dt)   # v's minimiser at x = 0
 
+    def warm(self, hx):
+        """A warm start at x0 (``hx`` = H x0): v = H x0 and xi the data term's gradient there,
+        mask (H x0 - y) with mask = C^T W C (the v step's fixed point for a = v)."""
+        self.v = hx.astype(self.dt)
+        self.xi = (self.mask * (hx - self.cty)).astype(self.dt)
+
     def rhs(self, mu):
         return mu * self.v - self.xi
 
@@ -153,6 +159,20 @@ class LeastSquaresBackground(LeastSquares):
 
     def changes(self):
         return {"b": self.change}
+
+    def warm(self, hx):
+        """As :meth:`LeastSquares.warm` with b first fitted to y - C H x0 with the pixels' own weights (the
+        v step's fit as mu grows): xi = mask (H x0 - (y - b))."""
+        from scipy.optimize import nnls
+
+        q = np.sqrt(self.wts.ravel())
+        c, _ = nnls(q[:, None] * self.B, q * (self.ys.astype(np.float64) - hx[self.sensor]).ravel(),
+                    maxiter=100 * self.B.shape[1])
+        self.b = (self.B @ c).reshape(self.M)
+        self.target = self.cty.astype(np.float64).copy()
+        self.target[self.sensor] -= self.b
+        self.v = hx.astype(self.dt)
+        self.xi = (self.mask * (hx - self.target)).astype(self.dt)
 
     def update(self, hx, mu, alpha=1.0):
         hr = alpha * hx + (1.0 - alpha) * self.v

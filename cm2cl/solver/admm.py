@@ -307,7 +307,8 @@ class ADMMSolver:
         """Reconstruct from measurement ``y``; ``weights`` (optional, the sensor's shape, finite, >= 0)
         weigh each pixel in the data term: 0 masks a pixel (saturated, hot), 1 is the default. ``x0``
         (optional, a volume in the caller's units, e.g. the previous frame's) starts x and its splits
-        there instead of at zero (a warm start; the duals start at zero)."""
+        there instead of at zero (a warm start: v at H x0, the data term's dual at its gradient there, the
+        regularisers' duals at zero)."""
         y_scale = self._measurement(y, weights)
         ctl = self._start(x0, y_scale, callback, callback_every)
         terms = self.terms
@@ -338,7 +339,8 @@ class ADMMSolver:
         return y_scale
 
     def _start(self, x0, y_scale, callback, callback_every) -> Control:
-        """Zero the state (or start x and the split variables at ``x0``) and make the iteration's control."""
+        """Zero the state (or start x and the identity splits at ``x0``, v at H x0 and the data dual at the
+        data term's gradient there: :meth:`cm2cl.solver.terms.Term.warm`) and make the iteration's control."""
         terms = self.terms
         self.walk.fill(tuple(n for n in terms.volumes if n != "g") + ("v", "xi"))
         terms.reset()
@@ -352,6 +354,11 @@ class ADMMSolver:
                                               self.nz * self.P[0] * self.P[1]),
                       callback, callback_every, splits=terms.splits)
         terms.start(self, ctl)
+        if x0 is not None:
+            # H x0 into part 0's hx by an x step that returns x0 itself: no data penalty (mu_v = 0) and the
+            # rhs c x0 that the splits (at x0, duals 0) make, so X = T / c; its result in g is scratch
+            xstep.x_step(self, {**ctl.x_mu(), "v": 0.0})
+            terms.data.warm(self, ctl)
         return ctl
 
     def _result(self, ctl, y_scale) -> Reconstruction:

@@ -87,7 +87,9 @@ _DOC = """Reconstruct a 3D volume from one CM2 measurement (paper Eq. 4) on an O
         the rows of every round, ``row['iter']`` counting on across them.
     x0 : (nz, My, Mx) or (nz, Py, Px) array, optional
         A warm start in the volume's units (e.g. the previous frame's ``rec.volume``): x and its splits
-        start there instead of at zero.
+        start there instead of at zero, the data split at H x0 and its dual at the data term's gradient
+        there (the background, where modelled, at its fit to y - C H x0), so that a start at the answer
+        stays near it.
 
     Returns
     -------

@@ -124,6 +124,15 @@ class LeastSquaresBackground(LeastSquares):
         self._b = self.fit.plane()
         self._set_target(s, self._b)
 
+    def warm(self, s, ctl) -> None:
+        """A warm start consistent with x0 (:meth:`LeastSquares.warm`): b fitted to y - C H x0 with the
+        pixels' weights W (what the v step's fit tends to as mu grows), then v = H x0 and
+        xi = C^T W (C H x0 + b - y)."""
+        hx = s.parts[0].planes["hx"].get()[0][s.crop].astype(np.float64)
+        self._b = self.fit.fit(s.y_n - hx, s.pixel_weights, "warm")
+        self._set_target(s, self._b)
+        self._warm_planes(s, s.y_n - self._b)
+
     def update(self, s, ctl) -> None:
         mu = ctl.mu["v"]
         part, (ny, nx) = s.parts[0], s.P

@@ -36,6 +36,11 @@ class Term(ABC):
     def start(self, s, ctl) -> None:
         """Its state at the start of a solve (the solver zeroed every volume, x0 set x and z)."""
 
+    def warm(self, s, ctl) -> None:
+        """Its state at a warm start, after :meth:`start`: x and the identity splits hold x0 and part 0's
+        ``hx`` holds H x0 (the data term sets its split there and its dual where the data term's optimality
+        puts it; regularisers keep their duals at 0)."""
+
     def active(self, ctl) -> bool:
         """Whether its split carries a term (a split without one is neither adapted nor judged)."""
         return True
