@@ -58,3 +58,22 @@ def test_warm_start_study_coarse_problem_is_exact_for_block_constant_volumes():
         # the plain 2 x 2 sum of the taps (half a pixel off, no triangle) is not that operator: the check sees it
         plain = object_image(ws.bin_sensor(psf), xc)
         assert np.abs(plain - a).max() > 0.05 * np.abs(a).max()
+
+
+def test_bench_fullframe_cli_mode_runs_tiny(rt, tmp_path):
+    """tools/bench_fullframe.py --cli (the full frame through `cm2cl reconstruct` from files) at a tiny size:
+    it measures the command's own iterations, time and memory, and keeps the library section of the file."""
+    import subprocess
+
+    out = tmp_path / "fullframe.md"
+    out.write_text("# The full-resolution frame\n\nthe library run's table\n")
+    tool = Path(__file__).resolve().parents[1] / "tools" / "bench_fullframe.py"
+    r = subprocess.run([sys.executable, str(tool), "--cli", "--planes", "3", "--bin", "8", "--iters", "3", "--beads",
+                        "10", "--out", str(out), "--scratch", str(tmp_path)], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    text = out.read_text()
+    assert text.startswith("# The full-resolution frame\n\nthe library run's table\n\n## The command line")
+    assert "| wall time, start to exit | " in text and " s for 3 iterations |" in text
+    rss = float(text.split("| peak RSS of the command (wait4 ru_maxrss) | ")[1].split(" GiB")[0])
+    assert 0.05 < rss < 4.0
+    assert list(tmp_path.iterdir()) == [out]    # the inputs and the volume went with their scratch folder

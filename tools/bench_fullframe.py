@@ -83,14 +83,11 @@ class AnonPeak:
         return max(self.peak, _proc_status("RssAnon"))
 
 
-def child(args) -> None:
-    """Make the inputs, solve ``args.iters`` iterations, print one JSON line of figures."""
-    import cm2cl
+def make_inputs(args):
+    """(psf, y): the CM2 model's PSF stack (float32) and a frame of ``args.beads`` beads with shot noise."""
     from cm2cl.optics.geometry import CM2Optics, depth_planes
     from cm2cl.optics.psf import axial_psf_stack
 
-    peak = AnonPeak()
-    t0 = time.perf_counter()
     optics = CM2Optics(binning=args.bin)
     half = (args.planes - 1) * args.dz / 2
     depths = depth_planes(-half, half, args.dz)
@@ -104,7 +101,17 @@ def child(args) -> None:
         z = int(rng.integers(nz))
         dy, dx = (int(rng.integers(-n // 4, n // 4)) for n in (my, mx))
         y += np.roll(psf[z], (dy, dx), axis=(0, 1)) * rng.uniform(0.5, 1.0)
-    y = rng.poisson(y / y.max() * 1000.0).astype(np.float64)
+    return psf, rng.poisson(y / y.max() * 1000.0).astype(np.float64)
+
+
+def child(args) -> None:
+    """Make the inputs, solve ``args.iters`` iterations, print one JSON line of figures."""
+    import cm2cl
+
+    peak = AnonPeak()
+    t0 = time.perf_counter()
+    psf, y = make_inputs(args)
+    nz, my, mx = psf.shape
     t_inputs = time.perf_counter() - t0
     io0 = _disk_io()
     times = []
@@ -126,6 +133,108 @@ def child(args) -> None:
         "padding": rec.info.get("padding", {}), "volume_max": float(rec.volume.max())}))
 
 
+def write_inputs(args) -> None:
+    """Make the inputs and write them where the command line reads them: ``DIR/frame.tif`` (float32) and
+    ``DIR/psf.ome.tif`` (object-space voxel size: the plane spacing and the model's object pixel)."""
+    import tifffile
+
+    from cm2cl import io as cio
+    from cm2cl.optics.geometry import CM2Optics
+
+    psf, y = make_inputs(args)
+    d = Path(args.write)
+    tifffile.imwrite(d / "frame.tif", y.astype(np.float32), photometric="minisblack")
+    px = CM2Optics(binning=args.bin).object_pixel_um()
+    cio.write_tiff(d / "psf.ome.tif", psf, voxel_size_um=(args.dz, px, px), extra={"voxel_space": cio.OBJECT_SPACE})
+
+
+class ChildIO:
+    """The storage bytes a child process has read and written so far (/proc/PID/io), sampled by a thread
+    while it runs (the last sample before it exits is what is reported)."""
+
+    def __init__(self, pid, every=0.5):
+        import threading
+
+        self.pid, self.every, self.last = pid, every, {"read_bytes": 0, "write_bytes": 0}
+        self._stop = threading.Event()
+        self._t = threading.Thread(target=self._run, daemon=True)
+        self._t.start()
+
+    def _run(self):
+        while not self._stop.is_set():
+            try:
+                vals = dict(line.split(": ") for line in Path(f"/proc/{self.pid}/io").read_text().splitlines())
+                self.last = {k: int(vals[k]) for k in self.last}
+            except (OSError, ValueError, KeyError):
+                pass
+            self._stop.wait(self.every)
+
+    def stop(self) -> dict:
+        self._stop.set()
+        self._t.join()
+        return self.last
+
+
+def run_cli(args) -> dict:
+    """The full frame through ``cm2cl reconstruct`` as a user runs it: the inputs written to files by one child
+    process, then the command in another, whose own peak RSS (wait4), wall time, storage traffic and
+    iteration log are measured."""
+    with tempfile.TemporaryDirectory(dir=args.scratch) as d:
+        made = subprocess.run([sys.executable, __file__, "--write", d, "--planes", str(args.planes), "--dz",
+                               str(args.dz), "--beads", str(args.beads), "--bin", str(args.bin)],
+                              capture_output=True, text=True)
+        if made.returncode != 0:
+            sys.exit(f"bench_fullframe: making the inputs failed: {made.stderr.strip()[-2000:]}")
+        out = Path(d) / "vol.ome.tif"
+        cmd = ["cm2cl", "reconstruct", str(Path(d) / "frame.tif"), "--psf", str(Path(d) / "psf.ome.tif"), "-o",
+               str(out), "--padding", args.padding, "--max-iter", str(args.iters), "--tol", "0", "--quiet"]
+        t0 = time.perf_counter()
+        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        io = ChildIO(proc.pid)
+        _, status, usage = os.wait4(proc.pid, 0)
+        wall = time.perf_counter() - t0
+        traffic = io.stop()
+        stdout, stderr = proc.stdout.read(), proc.stderr.read()
+        code = os.waitstatus_to_exitcode(status)
+        if code != 0:
+            sys.exit(f"bench_fullframe: `{' '.join(cmd[:2])} ...` failed (exit {code}): {stderr.strip()[-2000:]}")
+        from cm2cl.io.publish import sidecar_names
+
+        side = sidecar_names(out)
+        secs = np.atleast_1d(np.genfromtxt(side["log"], delimiter=",", names=True)["seconds"])
+        record = json.loads(side["record"].read_text())
+        return {"command": " ".join(["cm2cl"] + cmd[1:2] + ["frame.tif", "--psf", "psf.ome.tif", "-o", "vol.ome.tif"]
+                                    + cmd[7:]),
+                "wall_s": wall, "peak_rss": usage.ru_maxrss * 1024, "disk_read": traffic["read_bytes"],
+                "disk_write": traffic["write_bytes"], "output_bytes": out.stat().st_size,
+                "iters": int(secs.size), "per_iter_s": float(np.median(np.diff(secs))) if secs.size > 1 else float("nan"),
+                "first_iter_s": float(secs[0]), "summary": stdout.strip().splitlines()[-3:],
+                "converged": record.get("info", {}).get("converged")}
+
+
+def cli_section(args, r) -> str:
+    """The command line's section of docs/fullframe.md."""
+    proj = lambda n: r["wall_s"] + (n - r["iters"]) * r["per_iter_s"]  # noqa: E731
+    rows = [["command", f"`{r['command']}`"],
+            ["wall time, start to exit", f"{r['wall_s']:.0f} s for {r['iters']} iterations"],
+            ["first iteration (from the solve's start: plans, PSF spectra)", f"{r['first_iter_s']:.0f} s"],
+            ["seconds per iteration (median)", f"{r['per_iter_s']:.2f} s"],
+            ["peak RSS of the command (wait4 ru_maxrss)", f"{r['peak_rss'] / GIB:.2f} GiB"],
+            ["storage read / written by the command", f"{r['disk_read'] / GIB:.2f} / {r['disk_write'] / GIB:.2f} GiB"],
+            ["the volume written (OME-TIFF)", f"{r['output_bytes'] / GIB:.2f} GiB"],
+            [f"projected: {TYPICAL_ITERS} iterations", f"{proj(TYPICAL_ITERS) / 3600:.2f} h"],
+            ["projected: 1000 iterations (the default cap)", f"{proj(1000) / 3600:.2f} h"]]
+    binned = f" --bin {args.bin}" if args.bin != 1 else ""
+    return (f"{CLI_MARK}\n\nMade by `python tools/bench_fullframe.py --cli --planes {args.planes} --iters {args.iters}{binned} "
+            f"--padding {args.padding}` on {install_path()}: the same frame and PSF written to files (a float32 TIFF "
+            "and an OME-TIFF stack), then the command a user runs, in a process of its own.\n\n"
+            f"{markdown_table(['quantity', 'measured'], rows)}\n")
+
+
+#: the heading of the command line's section in the output file (replaced by --cli runs, kept by the others)
+CLI_MARK = "## The command line"
+
+
 def install_path() -> str:
     from cm2cl.device import get_runtime
     from cm2cl.device.fft import available_backends
@@ -145,10 +254,24 @@ def main():
     ap.add_argument("--bin", type=int, default=1)
     ap.add_argument("--padding", choices=["full", "support"], default="support")
     ap.add_argument("--out", type=Path, default=DOCS / "fullframe.md")
+    ap.add_argument("--cli", action="store_true",
+                    help="run the frame through `cm2cl reconstruct` from files instead (its section of --out)")
+    ap.add_argument("--scratch", default=None, help="--cli: where the input and output files go (default: TMPDIR)")
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument("--write", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child:
         child(args)
+        return
+    if args.write:
+        write_inputs(args)
+        return
+    old = args.out.read_text() if args.out.exists() else ""
+    if args.cli:
+        section = cli_section(args, run_cli(args))
+        print(section)
+        head = old.split(CLI_MARK)[0].rstrip() if old else "# The full-resolution frame"
+        args.out.write_text(head + "\n\n" + section)
         return
     cmd = [sys.executable, __file__, "--child", "--planes", str(args.planes), "--dz", str(args.dz),
            "--iters", str(args.iters), "--beads", str(args.beads), "--bin", str(args.bin), "--padding", args.padding]
@@ -197,7 +320,8 @@ def main():
             "stack, 1.2 GiB, and its copy truncated to the support) and the result read back (one volume on "
             "the padded grid). The projection assumes each iteration costs what the measured ones did.\n")
     print(text)
-    args.out.write_text(text)
+    cli = old[old.index(CLI_MARK):] if CLI_MARK in old else ""
+    args.out.write_text(text + ("\n" + cli if cli else ""))
 
 
 if __name__ == "__main__":
