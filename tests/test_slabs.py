@@ -313,3 +313,44 @@ def test_a_cpu_devices_budget_is_the_hosts_available_memory(rt, monkeypatch):
     gpu = device.Capabilities(**{**rt.caps.__dict__, "kind": "GPU", "global_mem": 6 * 2**30})
     monkeypatch.setattr(rt, "caps", gpu)
     assert memory.device_budget(rt, reserve=3 * 2**30) == int(0.9 * 6 * 2**30)
+
+
+def test_cli_header_check_leaves_support_padding_to_the_solver(rt, tmp_path, capsys):
+    """The header check plans the full padded grid, but `--padding support` pads to the PSF's support, known
+    only once the stack is decoded: there the headers bound the grid by the sensor, and the solver plans the
+    real one. A problem that streams on the full grid (refused under a tight --host-memory) but fits
+    resident on its support's grid runs with --padding support (it was refused from the headers: the full
+    frame of docs/fullframe.md, 29.6 GB planned on the full grid where 20.2 GB were used)."""
+    import tifffile
+
+    from cm2cl.cli import main
+    from cm2cl.cli.plan import _decoded_bytes
+    from cm2cl.solver.forward import choose_padded_shape, support_padding
+    from cm2cl.solver.params import ADMMParams
+    from cm2cl.solver.terms import state_counts, terms_for
+
+    rng = np.random.default_rng(3)
+    nz, M = 5, (48, 64)
+    psf = np.zeros((nz,) + M, np.float32)
+    for z in range(nz):                      # a compact stack: a few foci within 9 x 9 px of the axis
+        for _ in range(3):
+            psf[z, M[0] // 2 + rng.integers(-4, 5), M[1] // 2 + rng.integers(-4, 5)] += 1.0
+    x = np.zeros((nz,) + M)
+    x[1, 20, 30] = x[3, 10, 12] = 1.0
+    y = sum(np.real(np.fft.ifft2(np.fft.fft2(np.fft.ifftshift(psf[z])) * np.fft.fft2(x[z]))) for z in range(nz))
+    y = (y + 0.01).astype(np.float32)
+    tifffile.imwrite(tmp_path / "psf.tif", psf, photometric="minisblack")
+    tifffile.imwrite(tmp_path / "meas.tif", y)
+    counts = state_counts(terms_for(ADMMParams()))
+    full = memory_estimate(nz, choose_padded_shape(M, "cl"), np.float32, "cl", **counts)
+    sup = memory_estimate(nz, support_padding(psf, "cl")[1], np.float32, "cl", **counts)
+    assert sup["total"] < 0.6 * full["total"]
+    cap = (sup["total"] + full["total"]) // 2          # the full grid streams, the support's stays resident
+    host = _decoded_bytes(y.shape, psf.shape) + 1024   # room to decode, none for streamed slabs
+    base = ["reconstruct", str(tmp_path / "meas.tif"), "--psf", str(tmp_path / "psf.tif"), "--max-iter", "20",
+            "--quiet", "--backend", "cl", "--lean", "never", "--max-memory", str(cap), "--host-memory", str(host)]
+    assert main(base + ["-o", str(tmp_path / "a.ome.tif")]) == 2
+    assert "holding the streamed slabs" in capsys.readouterr().err
+    assert not (tmp_path / "a.ome.tif").exists()
+    assert main(base + ["-o", str(tmp_path / "b.ome.tif"), "--padding", "support"]) == 0
+    assert (tmp_path / "b.ome.tif").exists()

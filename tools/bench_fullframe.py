@@ -209,18 +209,28 @@ def run_cli(args) -> dict:
                 "disk_write": traffic["write_bytes"], "output_bytes": out.stat().st_size,
                 "iters": int(secs.size), "per_iter_s": float(np.median(np.diff(secs))) if secs.size > 1 else float("nan"),
                 "first_iter_s": float(secs[0]), "summary": stdout.strip().splitlines()[-3:],
-                "converged": record.get("info", {}).get("converged")}
+                "layout": record.get("info", {}).get("layout", []),
+                "padded": record.get("info", {}).get("padded_shape")}
+
+
+def layout_text(lay) -> str:
+    """The planner's layout (a record's ``info['layout']``) in words."""
+    return "; ".join(f"planes {p['planes'][0]}..{p['planes'][1] - 1} on {p['device']}: "
+                     + ("streamed" if p["streamed"] else "resident, lean" if p["lean"] else "resident")
+                     + f" (slabs of {p['slab_planes']})" for p in lay) or "-"
 
 
 def cli_section(args, r) -> str:
     """The command line's section of docs/fullframe.md."""
     proj = lambda n: r["wall_s"] + (n - r["iters"]) * r["per_iter_s"]  # noqa: E731
     rows = [["command", f"`{r['command']}`"],
+            ["padded grid", " x ".join(str(n) for n in r["padded"]) if r["padded"] else "-"],
+            ["layout", layout_text(r["layout"])],
             ["wall time, start to exit", f"{r['wall_s']:.0f} s for {r['iters']} iterations"],
             ["first iteration (from the solve's start: plans, PSF spectra)", f"{r['first_iter_s']:.0f} s"],
             ["seconds per iteration (median)", f"{r['per_iter_s']:.2f} s"],
             ["peak RSS of the command (wait4 ru_maxrss)", f"{r['peak_rss'] / GIB:.2f} GiB"],
-            ["storage read / written by the command", f"{r['disk_read'] / GIB:.2f} / {r['disk_write'] / GIB:.2f} GiB"],
+            ["storage read / written by the command (sampled every 0.5 s: the last writes may be missing)", f"{r['disk_read'] / GIB:.2f} / {r['disk_write'] / GIB:.2f} GiB"],
             ["the volume written (OME-TIFF)", f"{r['output_bytes'] / GIB:.2f} GiB"],
             [f"projected: {TYPICAL_ITERS} iterations", f"{proj(TYPICAL_ITERS) / 3600:.2f} h"],
             ["projected: 1000 iterations (the default cap)", f"{proj(1000) / 3600:.2f} h"]]
@@ -286,9 +296,7 @@ def main():
 
     ram = psutil.virtual_memory().total
     lay = r["layout"]
-    how = "; ".join(f"planes {p['planes'][0]}..{p['planes'][1] - 1} on {p['device']}: "
-                    + ("streamed" if p["streamed"] else "resident, lean" if p["lean"] else "resident")
-                    + f" (slabs of {p['slab_planes']})" for p in lay)
+    how = layout_text(lay)
     proj = lambda n: r["setup_s"] + n * r["per_iter_s"]  # noqa: E731
     rows = [
         ["sensor x planes", f"{r['sensor'][0]} x {r['sensor'][1]} x {r['planes']} ({r['dz_um']:g} um apart)"],

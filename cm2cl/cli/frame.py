@@ -5,6 +5,7 @@ log and its record published together (a failed run leaves nothing behind)."""
 from __future__ import annotations
 
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -34,11 +35,14 @@ def command(args, params: ADMMParams) -> int:
     psf, pmeta = read_psf(args)
     wp = working_psf(args, psf, pmeta, meas.shape, psf_off)
     pixels, names, weights = _pixels(args, meas, psf)
+    psf = None   # the stack as read is not needed past here (a full frame's is gigabytes)
     meas, background = _remove_background(args, meas, mmeta)
     off = _camera_offset(args, meas, off)
     y = prepare(meas, offset=off, bin_factor=args.bin, name=f"measurement '{args.measurement}'")
     weights, camera = _camera_weights(args, y, weights)
     dt = np.dtype(args.dtype)
+    if wp.h.dtype.itemsize > dt.itemsize:   # the solve reads each plane in its own dtype: a float32 solve
+        wp = replace(wp, h=wp.h.astype(dt))  # keeps a float32 working stack (half of a full frame's 2.6 GiB)
     planes, ny, nx = wp.h.shape   # the output is checked (writable, room, sidecars, no other run) and locked
     vol_bytes = planes * (2 * ny * 2 * nx if args.padded else ny * nx) * dt.itemsize
     outset = OutputSet(out, expected_bytes=vol_bytes, inputs=(args.measurement, args.psf), extras=extras(args))

@@ -67,7 +67,12 @@ def check_headers(args, params: ADMMParams) -> None:
     backend, rt = backend_of(args)
     dt = rt.check_dtype(np.dtype(args.dtype))
     nz = ps[0] if len(ps) == 3 else 1
-    _, lay = layout(args, nz, tuple(n // args.bin for n in ms), dt, backend, params)
+    sensor = tuple(n // args.bin for n in ms)
+    # --padding support pads to the PSF's support, known once it is decoded: here the grid is bounded from
+    # below by the sensor, so only what fits on no grid is refused; the solver plans the real grid (and
+    # refuses what does not fit) after the support is measured, before the solve
+    lower = sensor if getattr(args, "padding", "full") == "support" else None
+    _, lay = layout(args, nz, sensor, dt, backend, params, padded_shape=lower)
     need, streamed = _decoded_bytes(ms, ps), sum(lp.host_bytes for lp in lay)
     have = args.host_memory or host_available_bytes()
     if have and need + streamed > have:
