@@ -186,8 +186,10 @@ def run_cli(args) -> dict:
         if made.returncode != 0:
             sys.exit(f"bench_fullframe: making the inputs failed: {made.stderr.strip()[-2000:]}")
         out = Path(d) / "vol.ome.tif"
-        cmd = ["cm2cl", "reconstruct", str(Path(d) / "frame.tif"), "--psf", str(Path(d) / "psf.ome.tif"), "-o",
-               str(out), "--padding", args.padding, "--max-iter", str(args.iters), "--tol", "0", "--quiet"]
+        opts = ["--padding", args.padding, "--max-iter", str(args.iters), "--tol", "0", "--quiet"]
+        # `python -m cm2cl` of this interpreter: the `cm2cl` command of its environment, activated or not
+        cmd = [sys.executable, "-m", "cm2cl", "reconstruct", str(Path(d) / "frame.tif"), "--psf",
+               str(Path(d) / "psf.ome.tif"), "-o", str(out)] + opts
         t0 = time.perf_counter()
         proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         io = ChildIO(proc.pid)
@@ -197,14 +199,13 @@ def run_cli(args) -> dict:
         stdout, stderr = proc.stdout.read(), proc.stderr.read()
         code = os.waitstatus_to_exitcode(status)
         if code != 0:
-            sys.exit(f"bench_fullframe: `{' '.join(cmd[:2])} ...` failed (exit {code}): {stderr.strip()[-2000:]}")
+            sys.exit(f"bench_fullframe: `cm2cl reconstruct ...` failed (exit {code}): {stderr.strip()[-2000:]}")
         from cm2cl.io.publish import sidecar_names
 
         side = sidecar_names(out)
         secs = np.atleast_1d(np.genfromtxt(side["log"], delimiter=",", names=True)["seconds"])
         record = json.loads(side["record"].read_text())
-        return {"command": " ".join(["cm2cl"] + cmd[1:2] + ["frame.tif", "--psf", "psf.ome.tif", "-o", "vol.ome.tif"]
-                                    + cmd[7:]),
+        return {"command": " ".join(["cm2cl reconstruct frame.tif --psf psf.ome.tif -o vol.ome.tif"] + opts),
                 "wall_s": wall, "peak_rss": usage.ru_maxrss * 1024, "disk_read": traffic["read_bytes"],
                 "disk_write": traffic["write_bytes"], "output_bytes": out.stat().st_size,
                 "iters": int(secs.size), "per_iter_s": float(np.median(np.diff(secs))) if secs.size > 1 else float("nan"),
