@@ -49,38 +49,52 @@ def _proc_status(key: str) -> int:
     return 0
 
 
-def _disk_io() -> dict:
-    """Bytes this process read from and wrote to storage (/proc/self/io), zeros off Linux."""
+def _disk_io(pid="self") -> dict:
+    """Bytes a process (this one, or ``pid``) read from and wrote to storage (/proc/PID/io), zeros off Linux
+    or once it has exited."""
     out = {"read_bytes": 0, "write_bytes": 0}
     try:
-        for line in Path("/proc/self/io").read_text().splitlines():
+        for line in Path(f"/proc/{pid}/io").read_text().splitlines():
             k, v = line.split(":")
             if k in out:
                 out[k] = int(v)
-    except OSError:
+    except (OSError, ValueError):
         pass
     return out
 
 
-class AnonPeak:
-    """The largest anonymous RSS seen, sampled by a thread every ``every`` s (page cache excluded)."""
+class Sampler:
+    """``read()`` sampled by a thread every ``every`` s while something runs, folded by ``keep(kept, new)``
+    (the peak: max; the last sample: the new one where there is one); :meth:`stop` returns what it kept."""
 
-    def __init__(self, every=0.2):
+    def __init__(self, read, keep, start, every=0.2):
         import threading
 
-        self.peak, self.every, self._stop = 0, every, threading.Event()
+        self.read, self.keep, self.kept, self.every = read, keep, start, every
+        self._stop = threading.Event()
         self._t = threading.Thread(target=self._run, daemon=True)
         self._t.start()
 
     def _run(self):
         while not self._stop.is_set():
-            self.peak = max(self.peak, _proc_status("RssAnon"))
+            self.kept = self.keep(self.kept, self.read())
             self._stop.wait(self.every)
 
-    def stop(self) -> int:
+    def stop(self):
         self._stop.set()
         self._t.join()
-        return max(self.peak, _proc_status("RssAnon"))
+        return self.kept
+
+
+def anon_peak() -> Sampler:
+    """The largest anonymous RSS of this process seen (page cache excluded)."""
+    return Sampler(lambda: _proc_status("RssAnon"), max, 0)
+
+
+def child_io(pid) -> Sampler:
+    """The storage bytes child ``pid`` has read and written, its last sample before it exits."""
+    return Sampler(lambda: _disk_io(pid), lambda kept, new: new if any(new.values()) else kept,
+                   {"read_bytes": 0, "write_bytes": 0}, every=0.5)
 
 
 def make_inputs(args):
@@ -108,7 +122,7 @@ def child(args) -> None:
     """Make the inputs, solve ``args.iters`` iterations, print one JSON line of figures."""
     import cm2cl
 
-    peak = AnonPeak()
+    peak = anon_peak()
     t0 = time.perf_counter()
     psf, y = make_inputs(args)
     nz, my, mx = psf.shape
@@ -128,7 +142,8 @@ def child(args) -> None:
         "layout": rec.info["layout"], "device_bytes": rec.info["device_bytes"], "host_bytes": rec.info["host_bytes"],
         "moved_bytes": rec.info["moved_bytes"], "device": rec.info["device"], "backend": rec.info["backend"],
         "iters": len(log), "per_iter_s": per_iter, "setup_s": setup, "solve_s": t_solve, "inputs_s": t_inputs,
-        "peak_rss": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024, "peak_anon": peak.stop(),
+        "peak_rss": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024,
+        "peak_anon": max(peak.stop(), _proc_status("RssAnon")),
         "disk_read": io1["read_bytes"] - io0["read_bytes"], "disk_write": io1["write_bytes"] - io0["write_bytes"],
         "padding": rec.info.get("padding", {}), "volume_max": float(rec.volume.max())}))
 
@@ -148,33 +163,6 @@ def write_inputs(args) -> None:
     cio.write_tiff(d / "psf.ome.tif", psf, voxel_size_um=(args.dz, px, px), extra={"voxel_space": cio.OBJECT_SPACE})
 
 
-class ChildIO:
-    """The storage bytes a child process has read and written so far (/proc/PID/io), sampled by a thread
-    while it runs (the last sample before it exits is what is reported)."""
-
-    def __init__(self, pid, every=0.5):
-        import threading
-
-        self.pid, self.every, self.last = pid, every, {"read_bytes": 0, "write_bytes": 0}
-        self._stop = threading.Event()
-        self._t = threading.Thread(target=self._run, daemon=True)
-        self._t.start()
-
-    def _run(self):
-        while not self._stop.is_set():
-            try:
-                vals = dict(line.split(": ") for line in Path(f"/proc/{self.pid}/io").read_text().splitlines())
-                self.last = {k: int(vals[k]) for k in self.last}
-            except (OSError, ValueError, KeyError):
-                pass
-            self._stop.wait(self.every)
-
-    def stop(self) -> dict:
-        self._stop.set()
-        self._t.join()
-        return self.last
-
-
 def run_cli(args) -> dict:
     """The full frame through ``cm2cl reconstruct`` as a user runs it: the inputs written to files by one child
     process, then the command in another, whose own peak RSS (wait4), wall time, storage traffic and
@@ -190,16 +178,17 @@ def run_cli(args) -> dict:
         # `python -m cm2cl` of this interpreter: the `cm2cl` command of its environment, activated or not
         cmd = [sys.executable, "-m", "cm2cl", "reconstruct", str(Path(d) / "frame.tif"), "--psf",
                str(Path(d) / "psf.ome.tif"), "-o", str(out)] + opts
+        err = Path(d) / "stderr.txt"   # a file, not a pipe: nothing read while it runs can fill and block it
         t0 = time.perf_counter()
-        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        io = ChildIO(proc.pid)
-        _, status, usage = os.wait4(proc.pid, 0)
+        with open(err, "w") as fe:
+            proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=fe)
+            io = child_io(proc.pid)
+            _, status, usage = os.wait4(proc.pid, 0)   # its own rusage: peak RSS of this child alone
         wall = time.perf_counter() - t0
         traffic = io.stop()
-        stdout, stderr = proc.stdout.read(), proc.stderr.read()
-        code = os.waitstatus_to_exitcode(status)
+        proc.returncode = code = os.waitstatus_to_exitcode(status)
         if code != 0:
-            sys.exit(f"bench_fullframe: `cm2cl reconstruct ...` failed (exit {code}): {stderr.strip()[-2000:]}")
+            sys.exit(f"bench_fullframe: `cm2cl reconstruct ...` failed (exit {code}): {err.read_text().strip()[-2000:]}")
         from cm2cl.io.publish import sidecar_names
 
         side = sidecar_names(out)
@@ -209,7 +198,7 @@ def run_cli(args) -> dict:
                 "wall_s": wall, "peak_rss": usage.ru_maxrss * 1024, "disk_read": traffic["read_bytes"],
                 "disk_write": traffic["write_bytes"], "output_bytes": out.stat().st_size,
                 "iters": int(secs.size), "per_iter_s": float(np.median(np.diff(secs))) if secs.size > 1 else float("nan"),
-                "first_iter_s": float(secs[0]), "summary": stdout.strip().splitlines()[-3:],
+                "first_iter_s": float(secs[0]),
                 "layout": record.get("info", {}).get("layout", []),
                 "padded": record.get("info", {}).get("padded_shape")}
 

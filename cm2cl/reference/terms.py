@@ -141,10 +141,11 @@ class LeastSquaresBackground(LeastSquares):
         self.sensor = (slice(oy, oy + M[0]), slice(ox, ox + M[1]))
         self.b = np.zeros(M)
 
-    def _fit(self, a_sensor, mu):
+    def _fit(self, a_sensor, weights):
+        """b = B c, c = argmin_{c >= 0} ||weights^(1/2) (B c - (y - a))|| (NNLS on the whole design matrix)."""
         from scipy.optimize import nnls
 
-        q = np.sqrt((self.wts * mu / (self.wts + mu)).ravel())
+        q = np.sqrt(np.asarray(weights, np.float64).ravel())
         c, _ = nnls(q[:, None] * self.B, q * (self.ys.astype(np.float64) - a_sensor).ravel(), maxiter=100 * self.B.shape[1])
         b = (self.B @ c).reshape(self.M)
         self.change = (sq(b - self.b), sq(b))
@@ -163,20 +164,14 @@ class LeastSquaresBackground(LeastSquares):
     def warm(self, hx):
         """As :meth:`LeastSquares.warm` with b first fitted to y - C H x0 with the pixels' own weights (the
         v step's fit as mu grows): xi = mask (H x0 - (y - b))."""
-        from scipy.optimize import nnls
-
-        q = np.sqrt(self.wts.ravel())
-        c, _ = nnls(q[:, None] * self.B, q * (self.ys.astype(np.float64) - hx[self.sensor]).ravel(),
-                    maxiter=100 * self.B.shape[1])
-        self.b = (self.B @ c).reshape(self.M)
-        self.target = self.cty.astype(np.float64).copy()
-        self.target[self.sensor] -= self.b
+        self._fit(hx[self.sensor], self.wts)
+        self.change = (0.0, 0.0)   # the start's b: the first data step's change is measured from it
         self.v = hx.astype(self.dt)
         self.xi = (self.mask * (hx - self.target)).astype(self.dt)
 
     def update(self, hx, mu, alpha=1.0):
         hr = alpha * hx + (1.0 - alpha) * self.v
-        self._fit((hr + self.xi / mu)[self.sensor], mu)
+        self._fit((hr + self.xi / mu)[self.sensor], self.wts * mu / (self.wts + mu))
         v_new = ((self.mask * self.target + mu * hr + self.xi) / (self.mask + mu)).astype(self.dt)
         self.xi += mu * (hr - v_new)
         stats = dict(r2=sq(hx - v_new), d2=sq(v_new - self.v), ax2=sq(hx), z2=sq(v_new), dual2=sq(self.xi))
