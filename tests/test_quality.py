@@ -197,6 +197,29 @@ def small(**kw):
     return replace(base, **kw)
 
 
+def test_beads_between_planes_are_imaged_by_the_psf_of_their_own_depth():
+    """depth_jitter: each bead's depth is its plane plus a draw within +-jitter (inside the stack), its image
+    the PSF rendered at that depth (array_psf's planes; plane coordinate t + 0.4 is the stack 0.4 plane off),
+    and the scored positions carry the fractional depth."""
+    assert Q.array_psf(NZ, SHAPE, planes=np.arange(NZ) + 0.4) == pytest.approx(
+        Q.array_psf(NZ, SHAPE, Q.Mismatch(dz=0.4)), abs=1e-12)
+    spec = small(depth_jitter=0.5, n_beads=5, photons=1000.0)
+    sc = Q.render_scene(spec)
+    on = Q.render_scene(replace(spec, depth_jitter=0.0))
+    t = sc.beads[:, 0]
+    assert np.all(np.abs(t - on.beads[:, 0]) <= 0.5) and np.all((t >= 0) & (t <= NZ - 1))
+    assert np.abs(t - np.round(t)).max() > 0.1                         # some bead really between planes
+    np.testing.assert_array_equal(sc.beads[:, 1:], on.beads[:, 1:])
+    # the noiseless image: each bead's blob through the PSF of its own depth, written here bead by bead
+    img = 0.0
+    for b, (z, y, x) in enumerate(on.beads):
+        one = np.zeros((1,) + SHAPE)
+        one[0, y - 1:y + 2, x - 1:x + 2] = on.truth[z, y - 1:y + 2, x - 1:x + 2]
+        img = img + Q.object_image(Q.array_psf(NZ, SHAPE, planes=[t[b]]), one)
+    np.testing.assert_allclose(sc.signal, img * (1000.0 / img.max()), atol=1e-6)
+    assert not np.allclose(sc.signal, on.signal, atol=1.0)
+
+
 def test_scene_background_level_photons_and_noise_are_as_asked():
     spec = small(background="blob", bg_level=0.15, photons=800.0, mismatch=Q.Mismatch(blur=0.5))
     sc = Q.render_scene(spec)

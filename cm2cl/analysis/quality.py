@@ -163,7 +163,7 @@ NOMINAL = Mismatch()
 
 def array_psf(nz: int, shape=(128, 128), mismatch: Mismatch = NOMINAL, *, grid: int = 3, pitch_frac: float = 0.27,
               spread: float = 0.2, sigma0: float = 1.0, sigma_slope: float = 1.0, supersample: int = 2,
-              seed: int = 7) -> np.ndarray:
+              seed: int = 7, planes=None) -> np.ndarray:
     """A (nz, My, Mx) CM2-like array PSF stack: ``grid`` x ``grid`` lenslet foci around the optical axis
     (pixel (My//2, Mx//2), the solver's convention) at pitch ``pitch_frac`` x min(My, Mx).
 
@@ -172,7 +172,8 @@ def array_psf(nz: int, shape=(128, 128), mismatch: Mismatch = NOMINAL, *, grid: 
     spread apart or contract with depth, the array's depth cue) and is a Gaussian of sigma
     sigma0 + sigma_slope |u| px (in focus mid-stack); ``mismatch`` perturbs the spots (:class:`Mismatch`).
     Each spot is rendered on a ``supersample``-fold grid and binned. Every nominal plane sums to 1 (the
-    spots lie within the sensor); a vignetted stack sums to less."""
+    spots lie within the sensor); a vignetted stack sums to less. ``planes``: the plane coordinates t to
+    render (fractional allowed: an emitter between planes), one output plane each; default 0 .. nz-1."""
     if nz < 1:
         raise InputError(f"array_psf: nz must be >= 1, got {nz}")
     my, mx = (int(s) for s in shape)
@@ -195,9 +196,10 @@ def array_psf(nz: int, shape=(128, 128), mismatch: Mismatch = NOMINAL, *, grid: 
     rmax = max(l[2] for l in lenslets) or 1.0
     c = (nz - 1) / 2 if nz > 1 else 1.0
     a, b = mismatch.aberration, mismatch.blur
-    out = np.zeros((nz, my, mx))
-    for z in range(nz):
-        t = z + mismatch.dz
+    ts = np.arange(nz, dtype=float) if planes is None else np.asarray(planes, float).ravel()
+    out = np.zeros((len(ts), my, mx))
+    for z, t0 in enumerate(ts):
+        t = t0 + mismatch.dz
         u = (t - c) / c if nz > 1 else 0.0
         s = 1.0 + spread * u
         sig = sigma0 + sigma_slope * abs(u)
@@ -266,6 +268,13 @@ def bead_volume(beads, amplitudes, nz: int, shape, sigma: float = 0.8) -> np.nda
                 if 0 <= y + dy < shape[0] and 0 <= x + dx < shape[1]:
                     vol[z, y + dy, x + dx] = max(vol[z, y + dy, x + dx], a * w)
     return vol
+
+
+def _blob_mask(y: int, x: int, shape) -> np.ndarray:
+    """(My, Mx) ones on the 3 x 3 pixels of :func:`bead_volume`'s blob around (y, x)."""
+    m = np.zeros(shape)
+    m[max(y - 1, 0):y + 2, max(x - 1, 0):x + 2] = 1.0
+    return m
 
 
 def fibre_volume(n: int, nz: int, shape, seed: int, margin: int = 10, length: float = 90.0) -> np.ndarray:
@@ -352,7 +361,10 @@ class SceneSpec:
     planes, each a 3 x 3 voxel blob in one plane, :func:`bead_volume`) or 'fibres' (``n_fibres`` tubes through depth); the measurement is
     made with the array PSF perturbed by ``mismatch``, plus ``background`` (a :func:`background_field`
     kind) at ``bg_level`` x the bead image's peak, scaled so that the noiseless object image's brightest
-    pixel holds ``photons`` photons, then the camera's noise and offset."""
+    pixel holds ``photons`` photons, then the camera's noise and offset. ``depth_jitter`` > 0 (beads): each
+    bead's depth is drawn uniformly within +-depth_jitter plane of its plane (kept inside the stack) and its
+    image rendered with the PSF of that depth (:func:`array_psf`'s ``planes``): emitters between the planes the
+    reconstruction has; the scored positions are the true fractional ones."""
     name: str
     what: str
     kind: str = "beads"
@@ -362,6 +374,7 @@ class SceneSpec:
     bead_sigma: float = 0.8
     bead_planes: tuple | None = None
     n_fibres: int = 5
+    depth_jitter: float = 0.0
     mismatch: Mismatch = NOMINAL
     background: str = "none"
     bg_level: float = 0.0
@@ -375,7 +388,7 @@ class Scene:
     """A rendered scene: ``y`` the offset-subtracted frame (what the reconstruction gets), ``raw`` the
     camera frame, ``psf`` the nominal stack (given to the reconstruction), ``psf_true`` the one that made
     the data, ``truth`` (nz, My, Mx) the object on the reconstruction's field of view, ``beads`` (n, 3)
-    positions in voxels or None, ``expected`` the noiseless photons per pixel (object + background),
+    positions in voxels (fractional planes with ``depth_jitter``) or None, ``expected`` the noiseless photons per pixel (object + background),
     ``signal`` the object's part of it, ``bg`` the background's."""
     spec: SceneSpec
     y: np.ndarray
@@ -424,7 +437,16 @@ def render_scene(spec: SceneSpec) -> Scene:
         raise InputError(f"render_scene: unknown kind {spec.kind!r}")
     psf = array_psf(nz, shape)
     psf_true = array_psf(nz, shape, spec.mismatch) if spec.mismatch else psf
-    img = object_image(psf_true, truth)
+    if spec.kind == "beads" and spec.depth_jitter > 0:
+        # each bead imaged by the PSF of its own depth: one rendered plane and one volume plane per bead (the
+        # blobs of one plane do not overlap: beads are at least 5 px apart there)
+        t = np.clip(beads[:, 0] + np.random.default_rng(spec.seed + 4000).uniform(
+            -spec.depth_jitter, spec.depth_jitter, len(beads)), 0.0, nz - 1.0)
+        own = np.stack([truth[z] * _blob_mask(y, x, shape) for z, y, x in beads])
+        img = object_image(array_psf(nz, shape, spec.mismatch, planes=t), own)
+        beads = np.column_stack([t, beads[:, 1:]])
+    else:
+        img = object_image(psf_true, truth)
     # FFT rounding (~1e-16 of the peak) set to exactly 0: numpy's Poisson draws no random number for a mean of
     # 0 and some for any other, so rounding noise there would shift every later draw between FFT libraries
     img[img < 1e-9 * img.max()] = 0.0
@@ -450,6 +472,9 @@ def scene_specs(quick: bool = False) -> list[SceneSpec]:
         SceneSpec("mm_trunc", "truncated PSF (outer lenslets vignetted by up to 60%, field stop)",
                   mismatch=Mismatch(vignette=0.6)),
         SceneSpec("mm_all", "all four mismatches together", mismatch=allm),
+        SceneSpec("mm_issue", "30 beads, blurrier PSF 0.4 plane off in depth, haze 8%, 800 photons (the issue's "
+                  "mismatch case)", n_beads=30, mismatch=Mismatch(blur=1.0, dz=0.4), background="haze",
+                  bg_level=0.08, photons=800.0, seed=2),
         SceneSpec("bg_haze10", "smooth haze, 10% of the peak", background="haze", bg_level=0.10),
         SceneSpec("bg_ramp20", "linear ramp, 20% of the peak", background="ramp", bg_level=0.20),
         SceneSpec("bg_blob15", "large blob, 15% of the peak", background="blob", bg_level=0.15),
@@ -459,9 +484,12 @@ def scene_specs(quick: bool = False) -> list[SceneSpec]:
         SceneSpec("dense", "90 beads", n_beads=90),
         SceneSpec("edge_planes", "30 beads in the first and last two planes (far from focus)", n_beads=30,
                   bead_planes=(0, 1, 10, 11)),
+        SceneSpec("between", "40 beads between the planes (each within +-0.5 plane of one)", depth_jitter=0.5),
         SceneSpec("held_out", "30 beads, all mismatches, haze 8%, 800 photons (the issue's case)", n_beads=30,
                   mismatch=allm, background="haze", bg_level=0.08, photons=800.0, seed=5),
         SceneSpec("fibres", "5 fibres through depth, haze 5%", kind="fibres", background="haze", bg_level=0.05),
+        SceneSpec("fibres_blur", "5 fibres, blurrier PSF 0.4 plane off in depth, haze 5%, 800 photons", kind="fibres",
+                  mismatch=Mismatch(blur=1.0, dz=0.4), background="haze", bg_level=0.05, photons=800.0, seed=4),
         SceneSpec("fibres_mm", "5 fibres, all mismatches, random background 10%, 800 photons", kind="fibres",
                   mismatch=allm, background="random", bg_level=0.10, photons=800.0, seed=3),
     ]

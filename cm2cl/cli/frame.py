@@ -12,6 +12,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..solver.params import ADMMParams
+from ..solver.psf_refine import OPTIONAL_MODES, explicit_rounds
 from .inputs import check_bin, devices_arg, layout_options, offsets, read_psf, single_frame_shape, working_psf
 from .plan import check_headers
 from .progress import Progress
@@ -59,10 +60,13 @@ def command(args, params: ADMMParams) -> int:
         if background is not None and args.save_background:   # a member of the published unit
             io.write_tiff(outset.staged("background"), background.astype(np.float32), voxel_size_um=px,
                           extra={"what": what, "method": args.background, "measurement": str(args.measurement)})
-        if args.save_psf:
-            io.write_tiff(outset.staged("psf"), rec.psf.astype(np.float32), voxel_size_um=wp.voxel_size_um,
-                          extra={"what": "PSF stack self-calibrated on the measurement (--psf-refine), working grid",
-                                 "psf": str(args.psf), "measurement": str(args.measurement),
+        if args.save_psf:   # 'common' steps aside where it cannot run (host memory): the stack as used, said so
+            used = rec.psf if rec.psf is not None else wp.h
+            what = ("PSF stack self-calibrated on the measurement (--psf-refine), working grid" if rec.psf is not None
+                    else f"PSF stack used as given (--psf-refine {params.psf_refine} did not run: "
+                         f"{rec.info['psf_refine'].get('skipped')}), working grid")
+            io.write_tiff(outset.staged("psf"), np.asarray(used, np.float32), voxel_size_um=wp.voxel_size_um,
+                          extra={"what": what, "psf": str(args.psf), "measurement": str(args.measurement),
                                  "psf_refine": rec.info["psf_refine"]["rounds"]})
         vol = _write(args, outset, rec, dt, wp.scale)
     _report(out, outset, rec, wp.scale, vol)
@@ -89,9 +93,11 @@ def check_options(args) -> None:
         from ..io.background import check_background_spec
 
         check_background_spec(args.background)
-    if args.save_psf and (not args.psf_refine or args.psf_refine == "auto"):
-        raise InputError("--save-psf: writes the self-calibrated PSF; give --psf-refine ROUNDS as well")
-    if args.psf_refine and args.psf_refine != "auto" and (args.tile or args.padding == "support"):
+    if args.save_psf and not explicit_rounds(args.psf_refine) and (
+            args.psf_refine != "common" or args.tile or args.padding == "support"):
+        raise InputError("--save-psf: writes the self-calibrated PSF; give --psf-refine ROUNDS (or common, on the "
+                         "whole frame's full padded grid) as well")
+    if explicit_rounds(args.psf_refine) and (args.tile or args.padding == "support"):
         raise InputError(f"--psf-refine: not with {'--tile' if args.tile else '--padding support'} (the PSF is "
                          "refined on the whole frame's full padded grid)")
     if args.mask:
@@ -180,10 +186,10 @@ def _solve(args, y, wp, weights, params: ADMMParams, dt):
         return _tiled(args, y, wp, dt, devs, weights, params)
     # auto: the check's round where it runs (the rest, if it refines, runs past the bar's estimate)
     n = params.psf_refine
-    if n == "auto":
-        from ..solver.api import auto_skipped
+    if n in OPTIONAL_MODES:
+        from ..solver.api import refine_skipped
 
-        n = 0 if args.padding == "support" or auto_skipped(wp.h) else 1
+        n = 0 if refine_skipped(wp.h, None, args.padding == "support", n) else 1
     rounds = n * min(params.psf_refine_iter, params.max_iter)
     progress = Progress(params.max_iter + rounds, args.quiet, every=args.progress_every)
     try:
@@ -250,10 +256,12 @@ def refine_line(record) -> str:
             f"explain {check['disagreement']:.3f} of the misfit (threshold {check['threshold']:g}), F "
             f"{check['f_statistic']:.2f} (threshold {check['f_threshold']:g})") if check else ""
     if record.get("refined"):
-        head = f"PSF refined in {record['rounds']} rounds ({record['iterations_total']} iterations in all)"
+        what = ("1 round, one kernel common to every lenslet" if record.get("mode") == "common"
+                else f"{record['rounds']} rounds")
+        head = f"PSF refined in {what} ({record['iterations_total']} iterations in all)"
         return head + (f"; --psf-refine auto: {test}" if test else "")
     if record.get("skipped"):
-        return f"PSF used as given: --psf-refine auto does not check here ({record['skipped']})"
+        return f"PSF used as given: --psf-refine {record.get('mode', 'auto')} does not run here ({record['skipped']})"
     return f"PSF used as given: --psf-refine auto: {test}"
 
 

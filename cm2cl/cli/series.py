@@ -14,6 +14,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..solver.params import ADMMParams
+from ..solver.psf_refine import explicit_rounds
 from .inputs import check_bin, devices_arg, layout_options, offsets, read_psf, working_psf
 from .progress import FrameProgress
 
@@ -36,7 +37,7 @@ def command(args, params: ADMMParams) -> int:
     out = Path(args.output)
     if args.save_psf and not params.psf_refine:
         raise InputError("--save-psf: writes the self-calibrated PSF; give --psf-refine ROUNDS as well")
-    if params.psf_refine and params.psf_refine != "auto" and args.padding == "support":
+    if explicit_rounds(params.psf_refine) and args.padding == "support":
         raise InputError("--psf-refine: not with --padding support (the PSF is refined on the first frame's full "
                          "padded grid)")
     check_bin(args.bin)
@@ -59,11 +60,11 @@ def command(args, params: ADMMParams) -> int:
         layout(args, shape[0], shape[1:], dt, backend_of(args)[0], params, solver_kw.get("padded_shape"))
     record = {"what": "cm2cl reconstruction series", "psf": str(args.psf), "params": params.as_dict(),
               "frames": [f"{f.path}[{f.index}]" for f in series.frames[:1000]], "scale": wp.scale, "prep": prep}
-    from ..solver.api import auto_skipped
+    from ..solver.api import refine_skipped
 
-    # N rounds, or 'auto' where it can check: frame 0 decides, once for every frame
-    refine = params.psf_refine and (params.psf_refine != "auto"
-                                    or auto_skipped(h, solver_kw.get("padded_shape"), args.padding == "support") is None)
+    # N rounds, or 'auto' / 'common' where they can run: frame 0 decides, once for every frame
+    refine = explicit_rounds(params.psf_refine) or (params.psf_refine and refine_skipped(
+        h, solver_kw.get("padded_shape"), args.padding == "support", params.psf_refine) is None)
     if refine:
         from ..jobs.refine import refined_psf_path
 
@@ -103,7 +104,8 @@ def _refined(args, params, series, h, store, key, frame_prep, solver_kw, dt, wp)
     from ..jobs.refine import refined_psf_path, series_psf
 
     if not args.quiet and params.psf_refine != "auto":
-        print(f"cm2cl: the PSF is refined on frame 0 ({params.psf_refine} rounds) unless '{refined_psf_path(args.output)}' "
+        how = "one kernel common to every lenslet" if params.psf_refine == "common" else f"{params.psf_refine} rounds"
+        print(f"cm2cl: the PSF is refined on frame 0 ({how}) unless '{refined_psf_path(args.output)}' "
               "holds this job's", file=sys.stderr)
     solve_kw = {"dtype": dt, "backend": args.backend, "device": devices_arg(args.device)[0], **solver_kw}
     h, read_back = series_psf(args.output, key, series, h, store, frame_prep, params, solve_kw=solve_kw,

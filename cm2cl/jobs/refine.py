@@ -57,7 +57,8 @@ def series_psf(output, key: str, series, h, store, prepare, params, *, solve_kw:
     if auto:
         log.info("checking on frame 0 whether the PSF needs refining (psf_refine auto)")
     else:
-        log.info("refining the PSF on frame 0 (%d rounds)", params.psf_refine)
+        log.info("refining the PSF on frame 0 (%s)", "one kernel common to every lenslet"
+                 if params.psf_refine == "common" else f"{params.psf_refine} rounds")
     # auto: the check alone where it finds the views in agreement (the frame's own solve is the series')
     rec = (psf_check if auto else reconstruct)(prepare(series.read(0)), h, **solve_kw, **params.as_dict())
     if not rec.info["psf_refine"]["refined"]:   # auto, and frame 0's views agree with the PSF: no file

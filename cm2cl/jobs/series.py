@@ -92,11 +92,13 @@ def reconstruct_series(frames, psf, output, *, client=None, devices=None, warm_s
                          frame_interval_s=frame_interval_s, levels=pyramid, ngff=ngff) as store:
         from dataclasses import replace
 
-        from ..solver.api import auto_skipped
+        from ..solver.api import refine_skipped
         from ..solver.attenuation import attenuate
+        from ..solver.psf_refine import explicit_rounds
 
-        # N rounds, or 'auto' where it can check: frame 0 decides, once for every frame
-        if prm.psf_refine and (prm.psf_refine != "auto" or auto_skipped(h, padded_shape) is None):
+        # N rounds, or 'auto' / 'common' where they can run: frame 0 decides, once for every frame
+        if explicit_rounds(prm.psf_refine) or (prm.psf_refine
+                                               and refine_skipped(h, padded_shape, mode=prm.psf_refine) is None):
             from .refine import series_psf
 
             h, _ = series_psf(output, key, series, h, store, frame_prep, prm, voxel_size_um=vs, depths_um=d,

@@ -165,9 +165,11 @@ def reconstruct_tiled(measurement, psf, tile, halo=None, *, progress=None, **kw)
     for bad in ("normalize", "padded_shape", "padding", "x0"):
         if bad in kw:
             raise InputError(f"{bad}: not available with lateral tiles")
-    if kw.get("psf_refine") not in (None, 0, "auto"):
+    from ..solver.psf_refine import explicit_rounds
+
+    if explicit_rounds(kw.get("psf_refine")):
         raise InputError("psf_refine: not available with lateral tiles (the PSF is refined on the whole frame)")
-    # 'auto' does not refine tiles: a tile's few views would each decide for themselves
+    # 'auto' and 'common' do not refine tiles: a tile's few views would each decide for themselves
     kw = {**kw, "psf_refine": 0}
     from ..solver.attenuation import attenuate
 

@@ -137,11 +137,13 @@ def reconstruct(measurement, psf, *, dtype=np.float32, backend: str = "auto", de
         from .forward import support_padding
 
         psf, padded_shape, pad_info = support_padding(psf, fft_backend(backend, device))
-    auto = prm.psf_refine == "auto"
-    if prm.psf_refine and not auto and pad_info is not None:
+    from .psf_refine import OPTIONAL_MODES, explicit_rounds
+
+    optional = prm.psf_refine in OPTIONAL_MODES
+    if explicit_rounds(prm.psf_refine) and pad_info is not None:
         raise InputError("psf_refine: not with padding='support' (the refined PSF reaches past the measured "
                          "support); use padding='full'")
-    skipped = auto_skipped(psf, padded_shape, pad_info is not None) if auto else None
+    skipped = refine_skipped(psf, padded_shape, pad_info is not None, prm.psf_refine) if optional else None
 
     done = [0]   # iterations of the refinement's rounds before this solve: the callback's rows count on
 
@@ -154,12 +156,13 @@ def reconstruct(measurement, psf, *, dtype=np.float32, backend: str = "auto", de
         done[0] += rec.iterations
         return solver, rec
 
-    if (prm.psf_refine and not auto) or (auto and skipped is None):
+    if explicit_rounds(prm.psf_refine) or (optional and skipped is None):
         solver, rec = _refined(solve, y, psf, weights, prm, padded_shape, x0, check_only=_CHECK_ONLY.get())
     else:
         solver, rec = solve(psf, replace(prm, psf_refine=0), padded_shape, x0)
-        if auto:
-            rec.info["psf_refine"] = {"mode": "auto", "refined": False, "rounds": 0, "skipped": skipped}
+        if optional:
+            log.info("psf_refine %s: the PSF is used as given (%s)", prm.psf_refine, skipped)
+            rec.info["psf_refine"] = {"mode": prm.psf_refine, "refined": False, "rounds": 0, "skipped": skipped}
     rec.voxel_size_um, rec.depths_um = vs, d
     rec.info["padding"] = pad_info or {"padded_shape": list(solver.P), "support_px": None}
     rec.info["camera"] = cam
@@ -170,30 +173,32 @@ def reconstruct(measurement, psf, *, dtype=np.float32, backend: str = "auto", de
     return rec
 
 
-def auto_skipped(psf, padded_shape=None, support: bool = False) -> str | None:
-    """Why ``psf_refine='auto'`` does not check the views here, or None: a PSF of one view (a diffuser's
-    caustic or a single lens: nothing to disagree) or whose pieces are not views through its depth
-    (:func:`.psf_refine.views_through_depth`), padding='support' (the refined PSF would reach past the
-    measured support), or a check that would need more than half the host's available memory (its float64
-    lenslet images on the padded grid)."""
+def refine_skipped(psf, padded_shape=None, support: bool = False, mode: str = "auto") -> str | None:
+    """Why ``psf_refine=mode`` ('auto' or 'common', :data:`.psf_refine.OPTIONAL_MODES`) does not run here, or
+    None: padding='support' (the refined PSF would reach past the measured support), a refinement that would
+    need more than half the host's available memory (its float64 lenslet images on the padded grid), and
+    for 'auto' a PSF of one view (a diffuser's caustic or a single lens: nothing to disagree) or whose pieces
+    are not views through its depth (:func:`.psf_refine.views_through_depth`)."""
     from . import psf_refine as R
     from .forward import choose_padded_shape
     from .memory import host_available_bytes
 
     if support:
         return "padding='support'"
-    labels = R.lenslet_labels(psf)
-    n = int(labels.max())
-    if n < 2:
-        return "the PSF has one view"
-    if not R.views_through_depth(psf, labels):
-        return "the PSF's pieces are not views through its depth"
+    n = 1
+    if mode == "auto":
+        labels = R.lenslet_labels(psf)
+        n = int(labels.max())
+        if n < 2:
+            return "the PSF has one view"
+        if not R.views_through_depth(psf, labels):
+            return "the PSF's pieces are not views through its depth"
     P = _padded_arg(padded_shape) if padded_shape is not None else choose_padded_shape(psf.shape[1:], "cl")
-    need = 8 * int(P[0]) * int(P[1]) * (3 * psf.shape[0] + n + 4)
+    need = 8 * int(P[0]) * int(P[1]) * (3 * psf.shape[0] + n * R.depth_weights(psf.shape[0], 3).shape[0] + 4)
     if need > host_available_bytes() // 2:
-        log.warning("psf_refine auto: the view check needs %.1f GiB of host memory, more than half of what is "
-                    "available; the PSF is used as given", need / 2**30)
-        return f"the check needs {need / 2**30:.1f} GiB of host memory"
+        log.warning("psf_refine %s: the refinement needs %.1f GiB of host memory, more than half of what is "
+                    "available; the PSF is used as given", mode, need / 2**30)
+        return f"the refinement needs {need / 2**30:.1f} GiB of host memory"
     return None
 
 
@@ -217,13 +222,15 @@ def _refined(solve, y, psf, weights, prm, padded_shape, x0, check_only=False):
     ``prm.psf_refine`` 'auto': the first round (a sparse solve, one kernel per lenslet) is also the check
     (:func:`.psf_refine.view_disagreement`); when the views agree the PSF is used as given and the solve is
     the plain one from ``x0`` (``check_only``: the check's reconstruction is returned instead, for a series
-    that only needs the decision), else the rest of ``AUTO_ROUNDS`` rounds follow."""
+    that only needs the decision), else the rest of ``AUTO_ROUNDS`` rounds follow. 'common': one round, one
+    kernel for every lenslet (its depth nodes as given)."""
     from . import psf_refine as R
 
-    labels = R.lenslet_labels(psf)
+    common = prm.psf_refine == "common"
+    labels = np.ones(psf.shape[1:], np.int32) if common else R.lenslet_labels(psf)
     w = pixel_weights(weights, y.shape)
     auto = prm.psf_refine == "auto"
-    n = R.AUTO_ROUNDS if auto else prm.psf_refine
+    n = R.plan_rounds(prm.psf_refine)
     inner = replace(prm, psf_refine=n, max_iter=min(prm.psf_refine_iter, prm.max_iter))
     h = np.asarray(psf, np.float64)
     P, x_start, rounds, check = padded_shape, x0, [], None
@@ -253,7 +260,8 @@ def _refined(solve, y, psf, weights, prm, padded_shape, x0, check_only=False):
                 return solver, rec
     solver, rec = solve(h, replace(prm, psf_refine=n), P, x_start)
     rec.psf = h
-    rec.info["psf_refine"] = {"mode": "auto" if auto else "given", "refined": True, "check": check,
+    rec.info["psf_refine"] = {"mode": prm.psf_refine if prm.psf_refine in R.OPTIONAL_MODES else "given",
+                              "refined": True, "check": check,
                               "rounds": n, "lenslets": int(labels.max()),
                               "radius_px": prm.psf_refine_radius, "overrelax": R.OVERRELAX,
                               "depth_nodes": int(R.depth_weights(h.shape[0], prm.psf_refine_depth_nodes).shape[0]),
@@ -297,4 +305,4 @@ def fft_backend(backend, device) -> str:
     return resolve_backend(backend, get_runtime(device))
 
 
-__all__ = ["reconstruct", "fft_backend", "check_scale", "auto_skipped", "psf_check"]
+__all__ = ["reconstruct", "fft_backend", "check_scale", "refine_skipped", "psf_check"]

@@ -155,7 +155,7 @@ class ADMMParams:
         "eps of the reweighted l1 as a fraction of the volume's maximum.", flag=True)
     # 0 by default: 'auto' cannot tell a PSF that does not match from emitters between planes (docs/psf_refine.md)
     psf_refine: int | str = _param(
-        0, {"type": "int", "min": 0, "max": 20, "words": ("auto",)},
+        0, {"type": "int", "min": 0, "max": 20, "words": ("auto", "common")},
         "Rounds of PSF self-calibration (cm2cl.solver.psf_refine): after a solve of psf_refine_iter iterations, "
         "each lenslet's PSF is convolved with a small non-negative kernel fitted to the measurement (its local "
         "blur, shift and gain), and the volume is solved again from the last one; after the rounds the final "
@@ -164,7 +164,10 @@ class ADMMParams:
         "first round runs as a check, and the rest of 12 rounds follow only when the lenslets' views disagree "
         "with the PSF (separate kernels per lenslet explain more than 2.5% of the misfit beyond one common kernel, "
         "with an F statistic above 1.25; info['psf_refine']['check']), else the plain solve runs; 'auto' does "
-        "not refine a PSF of one view (a diffuser, a single lens), with padding='support' or lateral tiles.",
+        "not refine a PSF of one view (a diffuser, a single lens), with padding='support' or lateral tiles. "
+        "'common': one round with one kernel common to every lenslet (a blur or a shift of focus of the whole "
+        "PSF, interpolated over psf_refine_depth_nodes), not with padding='support' or lateral tiles (the PSF is "
+        "then used as given).",
         unit="rounds", flag=True)
     psf_refine_iter: int = _param(
         100, {"type": "int", "min": 1}, "Iterations of each solve before a PSF refinement round.", unit=_ITERS,

@@ -59,6 +59,22 @@ VIEW_DISAGREEMENT = 0.025
 VIEW_F = 1.25
 #: design-matrix entries per chunk of sensor rows (memory of the normal equations' accumulation)
 CHUNK_ENTRIES = 1 << 23
+#: psf_refine words that step aside where a refinement cannot run (padding='support', lateral tiles, too little
+#: host memory: the PSF is used as given and the reason recorded) where a number of rounds is refused:
+#: 'auto' checks the views and refines them only where they disagree; 'common' fits one kernel common to
+#: every lenslet (a blur or shift of focus of the whole PSF) in one round
+OPTIONAL_MODES = ("auto", "common")
+
+
+def explicit_rounds(value) -> bool:
+    """Whether the psf_refine value ``value`` asks for a number of rounds (refused where it cannot run)."""
+    return bool(value) and value not in OPTIONAL_MODES
+
+
+def plan_rounds(value) -> int:
+    """The refinement rounds the psf_refine value ``value`` runs when it refines: 'auto' the whole schedule,
+    'common' one, a number that many, 0 none."""
+    return {"auto": AUTO_ROUNDS, "common": 1}.get(value, value or 0)
 
 
 def lenslet_labels(psf: np.ndarray) -> np.ndarray:
@@ -311,4 +327,4 @@ def view_disagreement(images, kernels, target, sensor_shape, radius: int, weight
 
 __all__ = ["lenslet_labels", "depth_weights", "round_schedule", "lenslet_images", "fit_kernels", "relax", "apply_kernels",
            "kernel_summary", "refine_step", "sensor_model", "view_disagreement", "views_through_depth", "AUTO_ROUNDS", "VIEW_DISAGREEMENT",
-           "VIEW_F"]
+           "VIEW_F", "OPTIONAL_MODES", "explicit_rounds", "plan_rounds"]
