@@ -153,7 +153,7 @@ def test_progress_is_one_tqdm_bar_on_a_terminal_only(rt, tmp_path, monkeypatch, 
     # through the command: a bar on a terminal, nothing with --quiet
     meas, psf = _files(tmp_path)
     argv = ["reconstruct", str(meas), "--psf", str(psf), "-o", str(tmp_path / "v.ome.tif"), "--offset", "100", "--psf-offset", "100",
-            "--max-iter", "3", "--tol", "0"]
+            "--max-iter", "3", "--tol", "0", "--psf-refine", "0"]
     term = _Terminal()
     monkeypatch.setattr(sys, "stderr", term)
     assert main(argv) == 0

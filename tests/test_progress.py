@@ -59,7 +59,7 @@ def test_cli_log_level_and_progress_lines(rt, tmp_path, capsys):
     tifffile.imwrite(tmp_path / "psf.tif", psf.astype(np.float32), photometric="minisblack")
     tifffile.imwrite(tmp_path / "meas.tif", (y / y.max() * 1000).astype(np.float32))
     base = ["reconstruct", str(tmp_path / "meas.tif"), "--psf", str(tmp_path / "psf.tif"), "--max-iter", "30",
-            "--tol", "0"]
+            "--tol", "0", "--psf-refine", "0"]
     assert main(base + ["-o", str(tmp_path / "a.ome.tif"), "-v", "--progress-every", "0"]) == 0
     err = capsys.readouterr().err
     assert "cm2cl: INFO: cm2cl.solver.admm: ADMM on" in err and "iteration " not in err, err

@@ -104,7 +104,7 @@ def test_refinement_moves_the_psf_to_the_true_one_and_finds_the_beads(rt):
     the given one was, the misfit falls round by round, and the beads found improve on the unrefined solve."""
     psf, psf_true, y, beads = _kernel_mismatch_scene()
     kw = dict(max_iter=400, background="none")
-    plain = cm2cl.reconstruct(y, psf, **kw)
+    plain = cm2cl.reconstruct(y, psf, **kw, psf_refine=0)
     rec = cm2cl.reconstruct(y, psf, psf_refine=4, psf_refine_iter=100, **kw)
     info = rec.info["psf_refine"]
     assert info["rounds"] == 4 and info["lenslets"] == 9 and len(info["per_round"]) == 4
@@ -268,7 +268,7 @@ def test_refinement_fixes_the_aberrated_scene_of_the_quality_suite(rt):
     start), the beads at the issue's targets."""
     spec = {s.name: s for s in Q.scene_specs()}["mm_aberr"]
     sc = Q.render_scene(spec)
-    plain = Q.score_beads(cm2cl.reconstruct(sc.y, sc.psf).volume, sc.beads)
+    plain = Q.score_beads(cm2cl.reconstruct(sc.y, sc.psf, psf_refine=0).volume, sc.beads)
     rec = cm2cl.reconstruct(sc.y, sc.psf, psf_refine=12)
     s = Q.score_beads(rec.volume, sc.beads)
     assert plain["false_per_10"] > 5
@@ -353,9 +353,9 @@ def test_auto_leaves_a_matching_psf_as_given_and_refines_a_mismatched_one(rt):
     info = rec.info["psf_refine"]
     assert info["mode"] == "auto" and not info["refined"] and rec.psf is None
     assert info["check"]["disagreement"] < R.VIEW_DISAGREEMENT and info["check"]["f_statistic"] < R.VIEW_F
-    np.testing.assert_array_equal(rec.volume, cm2cl.reconstruct(matched.y, matched.psf, **kw).volume)
+    np.testing.assert_array_equal(rec.volume, cm2cl.reconstruct(matched.y, matched.psf, **kw, psf_refine=0).volume)
     sc = Q.render_scene(spec["mm_trunc"])
-    plain = Q.score_beads(cm2cl.reconstruct(sc.y, sc.psf, **kw).volume, sc.beads)
+    plain = Q.score_beads(cm2cl.reconstruct(sc.y, sc.psf, **kw, psf_refine=0).volume, sc.beads)
     rec = cm2cl.reconstruct(sc.y, sc.psf, psf_refine="auto", **kw)
     info = rec.info["psf_refine"]
     assert info["mode"] == "auto" and info["refined"] and info["rounds"] == R.AUTO_ROUNDS
@@ -378,7 +378,7 @@ def test_auto_does_not_check_where_it_cannot_refine(rt):
     y = Q.object_image(psf, x)
     rec = cm2cl.reconstruct(y, psf, max_iter=30, psf_refine="auto")
     assert rec.info["psf_refine"]["skipped"] == "the PSF has one view"
-    np.testing.assert_array_equal(rec.volume, cm2cl.reconstruct(y, psf, max_iter=30).volume)
+    np.testing.assert_array_equal(rec.volume, cm2cl.reconstruct(y, psf, max_iter=30, psf_refine=0).volume)
     scattered = np.zeros((nz,) + shape)          # 4 spots per plane, each plane's elsewhere
     rng = np.random.default_rng(2)
     for i in range(nz):
@@ -406,7 +406,7 @@ def test_auto_does_not_check_where_it_cannot_refine(rt):
 
 def test_cli_psf_refine_takes_auto_and_zero(rt, tmp_path, capsys):
     """--psf-refine auto checks first and refines here (each lenslet blurred and shifted by its own kernel),
-    and the summary says so with what the check measured; --psf-refine 0 (the default) neither checks nor
+    and the summary says so with what the check measured; --psf-refine 0 (the PSF as given) neither checks nor
     refines; a word that is neither a number nor 'auto' is refused by the parser (exit 2), before any output."""
     import json
 
@@ -451,7 +451,7 @@ def test_series_auto_decides_on_frame_0_once(rt, tmp_path):
     h, meta = io.read_tiff(tmp_path / "m.psf.ome.tif")
     np.testing.assert_array_equal(h, cm2cl.reconstruct(frames[0], psf, psf_refine="auto", **kw).psf)
     vol = np.asarray(zarr.open_group(str(tmp_path / "m.ome.zarr"), mode="r")["0"])
-    one = cm2cl.reconstruct(frames[1], h, **kw).volume
+    one = cm2cl.reconstruct(frames[1], h, **kw, psf_refine=0).volume
     np.testing.assert_allclose(vol[1], one, rtol=1e-5, atol=1e-6 * one.max())
     nz, shape = psf.shape[0], psf.shape[1:]
     beads = Q.place_beads(12, nz, shape, 5, margin=10)
@@ -461,7 +461,7 @@ def test_series_auto_decides_on_frame_0_once(rt, tmp_path):
     s = cm2cl.reconstruct_series(frames, psf, tmp_path / "a.ome.zarr", psf_refine="auto", **kw)
     assert s.computed == 2 and not (tmp_path / "a.psf.ome.tif").exists()
     vol = np.asarray(zarr.open_group(str(tmp_path / "a.ome.zarr"), mode="r")["0"])
-    one = cm2cl.reconstruct(frames[1], psf, **kw).volume
+    one = cm2cl.reconstruct(frames[1], psf, **kw, psf_refine=0).volume
     np.testing.assert_allclose(vol[1], one, rtol=1e-5, atol=1e-6 * one.max())
 
 
@@ -485,7 +485,7 @@ def test_common_kernel_removes_the_ghosts_of_a_blurrier_psf_off_in_depth(rt):
     (3 depth nodes) brings the PSF closer to the one that made the data, and the spurious maxima the plain
     solve leaves go below the issue's 1 per 10 beads with every bead found."""
     sc = Q.render_scene({s.name: s for s in Q.scene_specs()}["mm_issue"])
-    plain = Q.score_beads(cm2cl.reconstruct(sc.y, sc.psf).volume, sc.beads)
+    plain = Q.score_beads(cm2cl.reconstruct(sc.y, sc.psf, psf_refine=0).volume, sc.beads)
     rec = cm2cl.reconstruct(sc.y, sc.psf, psf_refine="common")
     info = rec.info["psf_refine"]
     assert info["mode"] == "common" and info["refined"] and info["rounds"] == 1 and info["lenslets"] == 1
@@ -561,3 +561,16 @@ def test_cli_and_series_take_common(rt, tmp_path, capsys):
     vol = np.asarray(zarr.open_group(str(tmp_path / "m.ome.zarr"), mode="r")["0"])
     one = cm2cl.reconstruct(frames[1], h, psf_refine=0, **kw).volume
     np.testing.assert_allclose(vol[1], one, rtol=1e-5, atol=1e-6 * one.max())
+
+
+def test_a_round_whose_volume_explains_nothing_keeps_the_psf(rt):
+    """A round whose sparse solve leaves the volume empty (here l1 at 1e6 x its weight; the camera model's
+    weights did so at 200 photons) has no kernel to fit: the PSF is kept as given and the record says so,
+    and the final solve is the plain one's answer from that start."""
+    sc = Q.render_scene({s.name: s for s in Q.scene_specs()}["beads"])
+    rec = cm2cl.reconstruct(sc.y, sc.psf, psf_refine="common", psf_refine_l1_start=1e6)
+    r = rec.info["psf_refine"]["per_round"][0]
+    assert r["kept"] and r["residual"] >= R.EMPTY_MISFIT
+    np.testing.assert_array_equal(rec.psf, np.asarray(sc.psf, np.float64))
+    assert all(k["gain"] == pytest.approx(1.0) and k["rms_width_px"] == 0.0 for k in r["kernels"])
+    assert Q.score_beads(rec.volume, sc.beads)["recall"] >= 0.95

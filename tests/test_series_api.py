@@ -10,7 +10,7 @@ from cm2cl.errors import InputError
 from cm2cl.jobs import FrameSeries
 from test_jobs import ARGS, _series  # noqa: F401 - the series of the CLI's tests
 
-KW = dict(max_iter=25, tol=0.0)
+KW = dict(max_iter=25, tol=0.0, psf_refine=0)   # the PSF as given, unless a test refines
 
 
 def _frames(tmp_path, n=3):
@@ -47,10 +47,10 @@ def test_psf_refine_refines_on_the_first_frame_and_solves_every_frame_with_it(rt
 
     psf, frames = _frames(tmp_path)
     out = tmp_path / "p.ome.zarr"
-    s = cm2cl.reconstruct_series(frames, psf, out, psf_refine=2, psf_refine_iter=10, **KW)
+    s = cm2cl.reconstruct_series(frames, psf, out, psf_refine_iter=10, **{**KW, "psf_refine": 2})
     assert s.computed == 3
     h, meta = io.read_tiff(tmp_path / "p.psf.ome.tif")
-    np.testing.assert_array_equal(h, cm2cl.reconstruct(frames[0], psf, psf_refine=2, psf_refine_iter=10, **KW).psf)
+    np.testing.assert_array_equal(h, cm2cl.reconstruct(frames[0], psf, psf_refine_iter=10, **{**KW, "psf_refine": 2}).psf)
     vol = np.asarray(zarr.open_group(str(out), mode="r")["0"])
     one = cm2cl.reconstruct(frames[2], h, **KW).volume
     np.testing.assert_allclose(vol[2], one, rtol=1e-5, atol=1e-6 * one.max())
@@ -58,7 +58,7 @@ def test_psf_refine_refines_on_the_first_frame_and_solves_every_frame_with_it(rt
     (tmp_path / "p.psf.ome.tif").unlink()
     (out / "0" / "1" / "0" / "0" / "0").write_bytes(b"\0" * 50)
     with pytest.raises(InputError, match="p.psf.ome.tif"):
-        cm2cl.reconstruct_series(frames, psf, out, psf_refine=2, psf_refine_iter=10, **KW)
+        cm2cl.reconstruct_series(frames, psf, out, psf_refine_iter=10, **{**KW, "psf_refine": 2})
 
 
 def test_file_frames_and_psf_path_label_the_store(rt, tmp_path):

@@ -52,10 +52,10 @@ def close(a, b, dtype):
 @pytest.mark.parametrize("overlap", [True, False], ids=["double-buffered", "one-buffer"])
 def test_streamed_slabs_equal_the_whole_solve(rt, dtype, overlap):
     psf, y, kw = problem(dtype=dtype)
-    whole = reconstruct(y, psf, dtype=dtype, device=rt, **kw)
+    whole = reconstruct(y, psf, dtype=dtype, device=rt, **kw, psf_refine=0)
     assert whole.info["layout"] == [{"device": rt.caps.name, "planes": [0, 7], "streamed": False, "lean": False,
                                      "slab_planes": 7, "overlap": False}]
-    streamed = reconstruct(y, psf, dtype=dtype, device=rt, stream=True, max_slab_planes=2, overlap=overlap, **kw)
+    streamed = reconstruct(y, psf, dtype=dtype, device=rt, stream=True, max_slab_planes=2, overlap=overlap, **kw, psf_refine=0)
     lay = streamed.info["layout"]
     assert lay[0]["streamed"] and lay[0]["slab_planes"] == 2 and streamed.info["slabs"] == 4
     assert lay[0]["overlap"] is overlap

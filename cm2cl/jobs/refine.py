@@ -60,7 +60,9 @@ def series_psf(output, key: str, series, h, store, prepare, params, *, solve_kw:
         log.info("refining the PSF on frame 0 (%s)", "one kernel common to every lenslet"
                  if params.psf_refine == "common" else f"{params.psf_refine} rounds")
     # auto: the check alone where it finds the views in agreement (the frame's own solve is the series')
-    rec = (psf_check if auto else reconstruct)(prepare(series.read(0)), h, **solve_kw, **params.as_dict())
+    # the planes' scale goes with it: an attenuating sample needs their depths (the stack comes back unattenuated)
+    rec = (psf_check if auto else reconstruct)(prepare(series.read(0)), h, voxel_size_um=voxel_size_um,
+                                               depths_um=depths_um, **solve_kw, **params.as_dict())
     if not rec.info["psf_refine"]["refined"]:   # auto, and frame 0's views agree with the PSF: no file
         log.info("psf_refine auto: frame 0's views agree with the PSF (%s); every frame is solved with it as given",
                  _why(rec.info["psf_refine"]))

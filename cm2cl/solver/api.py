@@ -143,7 +143,14 @@ def reconstruct(measurement, psf, *, dtype=np.float32, backend: str = "auto", de
     if explicit_rounds(prm.psf_refine) and pad_info is not None:
         raise InputError("psf_refine: not with padding='support' (the refined PSF reaches past the measured "
                          "support); use padding='full'")
-    skipped = refine_skipped(psf, padded_shape, pad_info is not None, prm.psf_refine) if optional else None
+    if explicit_rounds(prm.psf_refine) and padded_shape is not None:
+        margin = _refine_margin(psf, padded_shape)
+        if margin < prm.psf_refine_radius:
+            raise InputError(f"psf_refine: the padded grid {tuple(_padded_arg(padded_shape))} leaves {margin} px around "
+                             f"the sensor, less than the kernel radius {prm.psf_refine_radius}; give a larger "
+                             "padded_shape or psf_refine=0")
+    skipped = (refine_skipped(psf, padded_shape, pad_info is not None, prm.psf_refine, prm.psf_refine_radius)
+               if optional else None)
 
     done = [0]   # iterations of the refinement's rounds before this solve: the callback's rows count on
 
@@ -173,18 +180,31 @@ def reconstruct(measurement, psf, *, dtype=np.float32, backend: str = "auto", de
     return rec
 
 
-def refine_skipped(psf, padded_shape=None, support: bool = False, mode: str = "auto") -> str | None:
+def _refine_margin(psf, padded_shape) -> int:
+    """The pixels the padded grid leaves around the sensor on its narrowest side (the kernels' reach)."""
+    from .forward import crop_offsets
+
+    P = tuple(int(v) for v in _padded_arg(padded_shape))
+    lo = crop_offsets(psf.shape[1:], P)
+    return int(min(lo + tuple(p - m - o for p, m, o in zip(P, psf.shape[1:], lo))))
+
+
+def refine_skipped(psf, padded_shape=None, support: bool = False, mode: str = "auto", radius: int = 3) -> str | None:
     """Why ``psf_refine=mode`` ('auto' or 'common', :data:`.psf_refine.OPTIONAL_MODES`) does not run here, or
-    None: padding='support' (the refined PSF would reach past the measured support), a refinement that would
-    need more than half the host's available memory (its float64 lenslet images on the padded grid), and
-    for 'auto' a PSF of one view (a diffuser's caustic or a single lens: nothing to disagree) or whose pieces
-    are not views through its depth (:func:`.psf_refine.views_through_depth`)."""
+    None: padding='support' (the refined PSF would reach past the measured support), a padded grid that
+    leaves less than the kernel ``radius`` around the sensor, a refinement that would need more than half
+    the host's available memory (its float64 lenslet images on the padded grid), and for 'auto' a PSF of
+    one view (a diffuser's caustic or a single lens: nothing to disagree) or whose pieces are not views
+    through its depth (:func:`.psf_refine.views_through_depth`)."""
     from . import psf_refine as R
     from .forward import choose_padded_shape
     from .memory import host_available_bytes
 
     if support:
         return "padding='support'"
+    P = _padded_arg(padded_shape) if padded_shape is not None else choose_padded_shape(psf.shape[1:], "cl")
+    if _refine_margin(psf, P) < radius:
+        return f"the padded grid leaves less than the kernel radius ({radius} px) around the sensor"
     n = 1
     if mode == "auto":
         labels = R.lenslet_labels(psf)
@@ -193,7 +213,6 @@ def refine_skipped(psf, padded_shape=None, support: bool = False, mode: str = "a
             return "the PSF has one view"
         if not R.views_through_depth(psf, labels):
             return "the PSF's pieces are not views through its depth"
-    P = _padded_arg(padded_shape) if padded_shape is not None else choose_padded_shape(psf.shape[1:], "cl")
     need = 8 * int(P[0]) * int(P[1]) * (3 * psf.shape[0] + n * R.depth_weights(psf.shape[0], 3).shape[0] + 4)
     if need > host_available_bytes() // 2:
         log.warning("psf_refine %s: the refinement needs %.1f GiB of host memory, more than half of what is "
@@ -241,9 +260,16 @@ def _refined(solve, y, psf, weights, prm, padded_shape, x0, check_only=False):
         b = rec.background if rec.background is not None else 0.0
         step = R.refine_step(h, labels, rec.volume_padded, y - b, prm.psf_refine_radius, w, depth_nodes=nodes,
                              check=auto and rnd == 0)
-        h, k, misfit = step[:3]
+        h_new, k, misfit = step[:3]
+        empty = misfit >= R.EMPTY_MISFIT
+        if empty:   # the round's volume explains (almost) none of the data: there is nothing to fit kernels to
+            k = R.relax(np.eye(1, k[0].size, k[0].size // 2).reshape((1,) + k.shape[1:]).repeat(len(k), 0), 1.0)
+            log.info("PSF refinement round %d: its volume explains %.1f%% of the data; the PSF is kept",
+                     rnd + 1, 100 * (1 - misfit))
+        else:
+            h = h_new
         rounds.append({"iterations": rec.iterations, "residual": misfit, "l1_scale": scale, "depth_nodes": nodes,
-                       "kernels": R.kernel_summary(k)})
+                       "kernels": R.kernel_summary(k), "kept": bool(empty)})
         gains = [q["gain"] for q in rounds[-1]["kernels"]]
         log.info("PSF refinement round %d of %d: %d iterations, misfit %.4f before it; %d kernels, gains %.2f-%.2f",
                  len(rounds), n, rec.iterations, misfit, len(gains), min(gains), max(gains))

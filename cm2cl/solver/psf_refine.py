@@ -57,6 +57,9 @@ VIEW_DISAGREEMENT = 0.025
 #: default 9 lenslets x 49 taps on any sensor of 4000 pixels or more; non-negative kernels use fewer taps on
 #: noise than they have, so the test is conservative (white noise gives F ~ 0.3); matched PSFs gave at most 0.8
 VIEW_F = 1.25
+#: a round whose volume leaves at least this relative misfit (it explains 1% of the data or less: the sparse
+#: start removed everything, as the camera model's weights did at 200 photons) keeps the PSF: no kernel to fit
+EMPTY_MISFIT = 0.99
 #: design-matrix entries per chunk of sensor rows (memory of the normal equations' accumulation)
 CHUNK_ENTRIES = 1 << 23
 #: psf_refine words that step aside where a refinement cannot run (padding='support', lateral tiles, too little
@@ -259,6 +262,11 @@ def refine_step(psf, labels, volume_padded, target, radius: int, weights=None, b
     ||target - C H x|| / ||target|| before it) from a reconstruction's padded volume and the measurement
     less its background; ``depth_nodes`` G kernels per lenslet, interpolated over depth. ``check`` (one
     node): a fourth item, :func:`view_disagreement`'s record of the same fit."""
+    # the fit is invariant to the data's scale (volume and target scale together; the ridge is relative): taken
+    # out, so that squares of counts near the float64 range's end do not overflow
+    scale = float(np.abs(target).max()) or 1.0
+    target = np.asarray(target, np.float64) / scale
+    volume_padded = np.asarray(volume_padded, np.float64) / scale
     W = depth_weights(psf.shape[0], depth_nodes)
     F = lenslet_images(psf, labels, volume_padded, W)
     M = psf.shape[1:]
@@ -327,4 +335,4 @@ def view_disagreement(images, kernels, target, sensor_shape, radius: int, weight
 
 __all__ = ["lenslet_labels", "depth_weights", "round_schedule", "lenslet_images", "fit_kernels", "relax", "apply_kernels",
            "kernel_summary", "refine_step", "sensor_model", "view_disagreement", "views_through_depth", "AUTO_ROUNDS", "VIEW_DISAGREEMENT",
-           "VIEW_F", "OPTIONAL_MODES", "explicit_rounds", "plan_rounds"]
+           "VIEW_F", "OPTIONAL_MODES", "explicit_rounds", "plan_rounds", "EMPTY_MISFIT"]
