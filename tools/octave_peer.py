@@ -155,12 +155,12 @@ def main(argv=None):
     psf_n, y_n = psf * ps, y * ys
 
     t = time.perf_counter()
-    d = cm2cl.reconstruct(y_n, psf_n, padded_shape=P, max_iter=args.iters)
+    d = cm2cl.reconstruct(y_n, psf_n, padded_shape=P, max_iter=args.iters, psf_refine=0)
     td = time.perf_counter() - t
     l1, tv = d.info["l1"], d.info["tv"]
     t = time.perf_counter()
     L = cm2cl.reconstruct(y_n, psf_n, padded_shape=P, dtype=np.float64, max_iter=args.long_iters, tol=0,
-                          l1=l1, tv=tv)
+                          l1=l1, tv=tv, psf_refine=0)
     tl = time.perf_counter() - t
     obj_L, res_L = evaluate(psf_n, y_n, normalised(L), l1, tv, P)
     obj_d, res_d = evaluate(psf_n, y_n, normalised(d), l1, tv, P)

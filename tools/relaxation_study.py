@@ -65,10 +65,10 @@ def run_case(name: str, alphas, iters: int, log=print) -> list[dict]:
     long, stop = {}, {}
     for a in alphas:
         t = time.perf_counter()
-        rec = cm2cl.reconstruct(y, psf, relaxation=a, max_iter=iters, tol=0.0)
+        rec = cm2cl.reconstruct(y, psf, relaxation=a, max_iter=iters, tol=0.0, psf_refine=0)
         long[a] = (np.asarray(rec.history["objective"]), time.perf_counter() - t)
         t = time.perf_counter()
-        stop[a] = (cm2cl.reconstruct(y, psf, relaxation=a), time.perf_counter() - t)
+        stop[a] = (cm2cl.reconstruct(y, psf, relaxation=a, psf_refine=0), time.perf_counter() - t)
         log(f"{name} alpha {a:g}: {iters} iterations {long[a][1]:.1f} s; default stop {len(stop[a][0].log)} it")
     ref = min([float(o[-1]) for o, _ in long.values()] + [float(r.log[-1]["objective"]) for r, _ in stop.values()])
     rows = []

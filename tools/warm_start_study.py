@@ -94,9 +94,9 @@ def next_frame(name: str, seed: int = 5):
 
 def solve(y, psf, iters, x0=None):
     t = time.perf_counter()
-    long = cm2cl.reconstruct(y, psf, max_iter=iters, tol=0.0, x0=x0)
+    long = cm2cl.reconstruct(y, psf, max_iter=iters, tol=0.0, x0=x0, psf_refine=0)
     tl = time.perf_counter() - t
-    stop = cm2cl.reconstruct(y, psf, x0=x0)
+    stop = cm2cl.reconstruct(y, psf, x0=x0, psf_refine=0)
     return np.asarray(long.history["objective"]), tl / iters, stop, long
 
 
@@ -107,7 +107,7 @@ def run_case(name: str, iters: int, log=print) -> list[dict]:
     runs["cold"] = (obj, stop, 0.0)
     runs["answer"] = solve(y, psf, iters, long.volume)[0:3:2] + (0.0,)
     t = time.perf_counter()
-    coarse = cm2cl.reconstruct(bin_sensor(y), coarse_psf(psf))
+    coarse = cm2cl.reconstruct(bin_sensor(y), coarse_psf(psf), psf_refine=0)
     cost = (time.perf_counter() - t) / spi   # the coarse solve in fine iterations
     o, _, st, _ = solve(y, psf, iters, upsample(coarse.volume, psf.shape))
     runs["coarse"] = (o, st, cost)
