@@ -570,7 +570,10 @@ def test_a_round_whose_volume_explains_nothing_keeps_the_psf(rt):
     sc = Q.render_scene({s.name: s for s in Q.scene_specs()}["beads"])
     rec = cm2cl.reconstruct(sc.y, sc.psf, psf_refine="common", psf_refine_l1_start=1e6)
     r = rec.info["psf_refine"]["per_round"][0]
-    assert r["kept"] and r["residual"] >= R.EMPTY_MISFIT
+    assert r["kept"] and r["residual"] >= R.EMPTY_MISFIT and not rec.info["psf_refine"]["refined"]
+    from cm2cl.cli.frame import refine_line
+
+    assert refine_line(rec.info["psf_refine"]).startswith("PSF used as given: the refinement's sparse volume")
     np.testing.assert_array_equal(rec.psf, np.asarray(sc.psf, np.float64))
     assert all(k["gain"] == pytest.approx(1.0) and k["rms_width_px"] == 0.0 for k in r["kernels"])
     assert Q.score_beads(rec.volume, sc.beads)["recall"] >= 0.95

@@ -260,6 +260,9 @@ def refine_line(record) -> str:
                 else f"{record['rounds']} rounds")
         head = f"PSF refined in {what} ({record['iterations_total']} iterations in all)"
         return head + (f"; --psf-refine auto: {test}" if test else "")
+    if record.get("per_round") and all(r.get("kept") for r in record["per_round"]):
+        return ("PSF used as given: the refinement's sparse volume explained too little of the data to fit a kernel "
+                f"({record['iterations_total']} iterations in all)")
     if record.get("skipped"):
         return f"PSF used as given: --psf-refine {record.get('mode', 'auto')} does not run here ({record['skipped']})"
     return f"PSF used as given: --psf-refine auto: {test}"

@@ -63,9 +63,11 @@ def series_psf(output, key: str, series, h, store, prepare, params, *, solve_kw:
     # the planes' scale goes with it: an attenuating sample needs their depths (the stack comes back unattenuated)
     rec = (psf_check if auto else reconstruct)(prepare(series.read(0)), h, voxel_size_um=voxel_size_um,
                                                depths_um=depths_um, **solve_kw, **params.as_dict())
-    if not rec.info["psf_refine"]["refined"]:   # auto, and frame 0's views agree with the PSF: no file
-        log.info("psf_refine auto: frame 0's views agree with the PSF (%s); every frame is solved with it as given",
-                 _why(rec.info["psf_refine"]))
+    # auto, and frame 0's views agree with the PSF: no file ('common' always writes its stack, the given one
+    # where its round had nothing to fit, so that a resumed job reads it back)
+    if auto and not rec.info["psf_refine"]["refined"]:
+        log.info("psf_refine %s: frame 0 leaves the PSF as given (%s); every frame is solved with it",
+                 params.psf_refine, _why(rec.info["psf_refine"]))
         return np.asarray(h, np.float64), False
     if len(store.missing()) < len(series):   # auto decided to refine: the same check decided so before
         _missing(path, output)
@@ -94,4 +96,6 @@ def _why(record: dict) -> str:
     check = record.get("check")
     if check:
         return f"disagreement {check['disagreement']:.3f} <= {check['threshold']:g}"
+    if record.get("per_round") and all(r.get("kept") for r in record["per_round"]):
+        return "its sparse volume explained too little of the data to fit a kernel"
     return record.get("skipped") or "not checked"

@@ -287,7 +287,7 @@ def _refined(solve, y, psf, weights, prm, padded_shape, x0, check_only=False):
     solver, rec = solve(h, replace(prm, psf_refine=n), P, x_start)
     rec.psf = h
     rec.info["psf_refine"] = {"mode": prm.psf_refine if prm.psf_refine in R.OPTIONAL_MODES else "given",
-                              "refined": True, "check": check,
+                              "refined": not all(r["kept"] for r in rounds), "check": check,
                               "rounds": n, "lenslets": int(labels.max()),
                               "radius_px": prm.psf_refine_radius, "overrelax": R.OVERRELAX,
                               "depth_nodes": int(R.depth_weights(h.shape[0], prm.psf_refine_depth_nodes).shape[0]),
