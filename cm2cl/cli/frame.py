@@ -185,11 +185,11 @@ def _solve(args, y, wp, weights, params: ADMMParams, dt):
     if args.tile:
         return _tiled(args, y, wp, dt, devs, weights, params)
     # auto: the check's round where it runs (the rest, if it refines, runs past the bar's estimate)
+    from ..solver.api import refine_runs
+
     n = params.psf_refine
     if n in OPTIONAL_MODES:
-        from ..solver.api import refine_skipped
-
-        n = 0 if refine_skipped(wp.h, None, args.padding == "support", n) else 1
+        n = int(refine_runs(wp.h, n, None, args.padding == "support", params.psf_refine_radius))
     rounds = n * min(params.psf_refine_iter, params.max_iter)
     progress = Progress(params.max_iter + rounds, args.quiet, every=args.progress_every)
     try:

@@ -60,11 +60,11 @@ def command(args, params: ADMMParams) -> int:
         layout(args, shape[0], shape[1:], dt, backend_of(args)[0], params, solver_kw.get("padded_shape"))
     record = {"what": "cm2cl reconstruction series", "psf": str(args.psf), "params": params.as_dict(),
               "frames": [f"{f.path}[{f.index}]" for f in series.frames[:1000]], "scale": wp.scale, "prep": prep}
-    from ..solver.api import refine_skipped
+    from ..solver.api import refine_runs
 
     # N rounds, or 'auto' / 'common' where they can run: frame 0 decides, once for every frame
-    refine = explicit_rounds(params.psf_refine) or (params.psf_refine and refine_skipped(
-        h, solver_kw.get("padded_shape"), args.padding == "support", params.psf_refine) is None)
+    refine = refine_runs(h, params.psf_refine, solver_kw.get("padded_shape"), args.padding == "support",
+                         params.psf_refine_radius)
     if refine:
         from ..jobs.refine import refined_psf_path
 

@@ -92,13 +92,11 @@ def reconstruct_series(frames, psf, output, *, client=None, devices=None, warm_s
                          frame_interval_s=frame_interval_s, levels=pyramid, ngff=ngff) as store:
         from dataclasses import replace
 
-        from ..solver.api import refine_skipped
+        from ..solver.api import refine_runs
         from ..solver.attenuation import attenuate
-        from ..solver.psf_refine import explicit_rounds
 
         # N rounds, or 'auto' / 'common' where they can run: frame 0 decides, once for every frame
-        if explicit_rounds(prm.psf_refine) or (prm.psf_refine
-                                               and refine_skipped(h, padded_shape, mode=prm.psf_refine) is None):
+        if refine_runs(h, prm.psf_refine, padded_shape, radius=prm.psf_refine_radius):
             from .refine import series_psf
 
             h, _ = series_psf(output, key, series, h, store, frame_prep, prm, voxel_size_um=vs, depths_um=d,

@@ -180,6 +180,16 @@ def reconstruct(measurement, psf, *, dtype=np.float32, backend: str = "auto", de
     return rec
 
 
+def refine_runs(psf, value, padded_shape=None, support: bool = False, radius: int = 3) -> bool:
+    """Whether psf_refine ``value`` refines here: a number of rounds always (it is refused where it cannot run),
+    'auto' and 'common' unless :func:`refine_skipped` gives a reason, 0 never."""
+    from .psf_refine import OPTIONAL_MODES, explicit_rounds
+
+    if value in OPTIONAL_MODES:
+        return refine_skipped(psf, padded_shape, support, value, radius) is None
+    return explicit_rounds(value)
+
+
 def _refine_margin(psf, padded_shape) -> int:
     """The pixels the padded grid leaves around the sensor on its narrowest side (the kernels' reach)."""
     from .forward import crop_offsets
@@ -263,7 +273,8 @@ def _refined(solve, y, psf, weights, prm, padded_shape, x0, check_only=False):
         h_new, k, misfit = step[:3]
         empty = misfit >= R.EMPTY_MISFIT
         if empty:   # the round's volume explains (almost) none of the data: there is nothing to fit kernels to
-            k = R.relax(np.eye(1, k[0].size, k[0].size // 2).reshape((1,) + k.shape[1:]).repeat(len(k), 0), 1.0)
+            k = np.zeros_like(k)
+            k[:, k.shape[1] // 2, k.shape[2] // 2] = 1.0
             log.info("PSF refinement round %d: its volume explains %.1f%% of the data; the PSF is kept",
                      rnd + 1, 100 * (1 - misfit))
         else:
@@ -331,4 +342,4 @@ def fft_backend(backend, device) -> str:
     return resolve_backend(backend, get_runtime(device))
 
 
-__all__ = ["reconstruct", "fft_backend", "check_scale", "refine_skipped", "psf_check"]
+__all__ = ["reconstruct", "fft_backend", "check_scale", "refine_skipped", "refine_runs", "psf_check"]
