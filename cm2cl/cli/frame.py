@@ -13,7 +13,8 @@ import numpy as np
 from ..errors import InputError
 from ..solver.params import ADMMParams
 from ..solver.psf_refine import OPTIONAL_MODES, explicit_rounds
-from .inputs import check_bin, devices_arg, layout_options, offsets, read_psf, single_frame_shape, working_psf
+from .inputs import (check_bin, devices_arg, layout_options, offsets, read_psf, single_frame_shape, solver_params,
+                     working_psf)
 from .plan import check_headers
 from .progress import Progress
 
@@ -60,7 +61,7 @@ def command(args, params: ADMMParams) -> int:
         if background is not None and args.save_background:   # a member of the published unit
             io.write_tiff(outset.staged("background"), background.astype(np.float32), voxel_size_um=px,
                           extra={"what": what, "method": args.background, "measurement": str(args.measurement)})
-        if args.save_psf:   # 'common' steps aside where it cannot run (host memory): the stack as used, said so
+        if args.save_psf:   # 'auto' and 'common' step aside where they cannot run (host memory): the stack as used
             used = rec.psf if rec.psf is not None else wp.h
             what = ("PSF stack self-calibrated on the measurement (--psf-refine), working grid" if rec.psf is not None
                     else f"PSF stack used as given (--psf-refine {params.psf_refine} did not run: "
@@ -93,10 +94,10 @@ def check_options(args) -> None:
         from ..io.background import check_background_spec
 
         check_background_spec(args.background)
-    if args.save_psf and not explicit_rounds(args.psf_refine) and (
-            args.psf_refine != "common" or args.tile or args.padding == "support"):
-        raise InputError("--save-psf: writes the self-calibrated PSF; give --psf-refine ROUNDS (or common, on the "
-                         "whole frame's full padded grid) as well")
+    mode = solver_params(args).psf_refine   # the default, a --preset's or the option's
+    if args.save_psf and (not mode or (not explicit_rounds(mode) and (args.tile or args.padding == "support"))):
+        raise InputError("--save-psf: writes the self-calibrated PSF; needs --psf-refine ROUNDS, auto or common (not "
+                         "0), on the whole frame's full padded grid (not with --tile or --padding support)")
     if explicit_rounds(args.psf_refine) and (args.tile or args.padding == "support"):
         raise InputError(f"--psf-refine: not with {'--tile' if args.tile else '--padding support'} (the PSF is "
                          "refined on the whole frame's full padded grid)")
@@ -184,7 +185,7 @@ def _solve(args, y, wp, weights, params: ADMMParams, dt):
     devs = devices_arg(args.device)
     if args.tile:
         return _tiled(args, y, wp, dt, devs, weights, params)
-    # auto: the check's round where it runs (the rest, if it refines, runs past the bar's estimate)
+    # auto and common: the common round where it runs (auto's rounds per lenslet, if any, run past the bar's estimate)
     from ..solver.api import refine_runs
 
     n = params.psf_refine
@@ -255,17 +256,19 @@ def refine_line(record) -> str:
     test = (f"the lenslets' views {'disagree' if check['refine'] else 'agree'} with the PSF: separate kernels "
             f"explain {check['disagreement']:.3f} of the misfit (threshold {check['threshold']:g}), F "
             f"{check['f_statistic']:.2f} (threshold {check['f_threshold']:g})") if check else ""
+    if record.get("check_skipped") and record.get("refined"):
+        test = f"the lenslets' views not compared ({record['check_skipped']})"
     if record.get("refined"):
-        what = ("1 round, one kernel common to every lenslet" if record.get("mode") == "common"
-                else f"{record['rounds']} rounds")
+        what = (f"{record['rounds']} rounds" if record["rounds"] > 1 else "1 round, one kernel common to every lenslet"
+                if record.get("mode") in ("common", "auto") else "1 round")
+        if record["rounds"] > 1 and record.get("mode") == "auto":
+            what += " (one kernel common to every lenslet, then kernels per lenslet)"
         head = f"PSF refined in {what} ({record['iterations_total']} iterations in all)"
         return head + (f"; --psf-refine auto: {test}" if test else "")
     if record.get("per_round") and all(r.get("kept") for r in record["per_round"]):
         return ("PSF used as given: the refinement's sparse volume explained too little of the data to fit a kernel "
                 f"({record['iterations_total']} iterations in all)")
-    if record.get("skipped"):
-        return f"PSF used as given: --psf-refine {record.get('mode', 'auto')} does not run here ({record['skipped']})"
-    return f"PSF used as given: --psf-refine auto: {test}"
+    return f"PSF used as given: --psf-refine {record.get('mode', 'auto')} does not run here ({record.get('skipped')})"
 
 
 def _report(out, outset, rec, how, vol):

@@ -103,8 +103,9 @@ def _refined(args, params, series, h, store, key, frame_prep, solver_kw, dt, wp)
     """The PSF stack every frame is solved with under --psf-refine (:func:`cm2cl.jobs.refine.series_psf`)."""
     from ..jobs.refine import refined_psf_path, series_psf
 
-    if not args.quiet and params.psf_refine != "auto":
-        how = "one kernel common to every lenslet" if params.psf_refine == "common" else f"{params.psf_refine} rounds"
+    if not args.quiet:
+        how = {"common": "one kernel common to every lenslet", "auto": "one kernel common to every lenslet, then "
+               "kernels per lenslet where their views disagree"}.get(params.psf_refine, f"{params.psf_refine} rounds")
         print(f"cm2cl: the PSF is refined on frame 0 ({how}) unless '{refined_psf_path(args.output)}' "
               "holds this job's", file=sys.stderr)
     solve_kw = {"dtype": dt, "backend": args.backend, "device": devices_arg(args.device)[0], **solver_kw}

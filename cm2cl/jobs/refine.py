@@ -2,9 +2,8 @@
 series' first frame (:mod:`cm2cl.solver.psf_refine`), kept beside the store as ``OUT.psf.ome.tif`` with the
 job's fingerprint. A resumed job reads it back, so that every frame of a store is solved with the same
 stack; a store with finished frames and no such file (deleted, or another job's) is refused before any
-work. With ``psf_refine='auto'`` frame 0's check decides (:func:`cm2cl.reconstruct`): where its views
-agree with the PSF no file is made and every frame is solved with the given stack; the check is
-deterministic, so a resumed job decides as the first run did. Used by ``cm2cl reconstruct FRAMES -o OUT.ome.zarr --psf-refine N`` and :func:`reconstruct_series`."""
+work. With ``psf_refine='auto'`` frame 0's check decides whether the stack is refined per lenslet or by one
+common kernel (:func:`cm2cl.reconstruct`); either way the stack is written. Used by ``cm2cl reconstruct FRAMES -o OUT.ome.zarr --psf-refine N`` and :func:`reconstruct_series`."""
 
 from __future__ import annotations
 
@@ -43,7 +42,6 @@ def series_psf(output, key: str, series, h, store, prepare, params, *, solve_kw:
     layout)."""
     from .. import io
     from ..solver import reconstruct
-    from ..solver.api import psf_check
 
     path = refined_psf_path(output)
     if path.exists():
@@ -51,26 +49,16 @@ def series_psf(output, key: str, series, h, store, prepare, params, *, solve_kw:
         if (meta.get("extra") or {}).get("job") == key and psf.shape == tuple(h.shape):
             log.info("the PSF refined on frame 0 is read back from '%s'", path)
             return np.asarray(psf, np.float64), True
-    auto = params.psf_refine == "auto"
-    if len(store.missing()) < len(series) and not auto:
+    if len(store.missing()) < len(series):
         _missing(path, output)
-    if auto:
-        log.info("checking on frame 0 whether the PSF needs refining (psf_refine auto)")
-    else:
-        log.info("refining the PSF on frame 0 (%s)", "one kernel common to every lenslet"
-                 if params.psf_refine == "common" else f"{params.psf_refine} rounds")
-    # auto: the check alone where it finds the views in agreement (the frame's own solve is the series')
-    # the planes' scale goes with it: an attenuating sample needs their depths (the stack comes back unattenuated)
-    rec = (psf_check if auto else reconstruct)(prepare(series.read(0)), h, voxel_size_um=voxel_size_um,
-                                               depths_um=depths_um, **solve_kw, **params.as_dict())
-    # auto, and frame 0's views agree with the PSF: no file ('common' always writes its stack, the given one
-    # where its round had nothing to fit, so that a resumed job reads it back)
-    if auto and not rec.info["psf_refine"]["refined"]:
-        log.info("psf_refine %s: frame 0 leaves the PSF as given (%s); every frame is solved with it",
-                 params.psf_refine, _why(rec.info["psf_refine"]))
-        return np.asarray(h, np.float64), False
-    if len(store.missing()) < len(series):   # auto decided to refine: the same check decided so before
-        _missing(path, output)
+    log.info("refining the PSF on frame 0 (%s)", {"common": "one kernel common to every lenslet",
+                                                  "auto": "one kernel common to every lenslet, then kernels per "
+                                                          "lenslet where their views disagree"}
+             .get(params.psf_refine, f"{params.psf_refine} rounds"))
+    # the planes' scale goes with it: an attenuating sample needs their depths (the stack comes back unattenuated);
+    # the stack is written even where a round had nothing to fit (the given one), so that a resumed job reads it
+    rec = reconstruct(prepare(series.read(0)), h, voxel_size_um=voxel_size_um, depths_um=depths_um, **solve_kw,
+                      **params.as_dict())
     first = series.frames[0] if hasattr(series, "frames") else None
     tmp = path.with_name(f".{path.name}.partial-{os.getpid()}.ome.tif")
     try:
@@ -90,12 +78,3 @@ def _missing(path, output):
     raise InputError(f"psf_refine: '{path}', the refined PSF stack the finished frames of '{output}' were "
                      "solved with, is missing or belongs to another job; put it back, or reconstruct into a "
                      "new store")
-
-
-def _why(record: dict) -> str:
-    check = record.get("check")
-    if check:
-        return f"disagreement {check['disagreement']:.3f} <= {check['threshold']:g}"
-    if record.get("per_round") and all(r.get("kept") for r in record["per_round"]):
-        return "its sparse volume explained too little of the data to fit a kernel"
-    return record.get("skipped") or "not checked"

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import contextvars
 import logging
 from dataclasses import replace
 
@@ -18,8 +17,6 @@ from .params import check_keywords, with_parameters
 
 log = logging.getLogger(__name__)
 
-#: set by :func:`psf_check`: psf_refine='auto' returns the check's reconstruction when it does not refine
-_CHECK_ONLY = contextvars.ContextVar("cm2cl_psf_check_only", default=False)
 
 #: reconstruct()'s docstring; the solver parameters' entries are made from their declaration (ADMMParams)
 _DOC = """Reconstruct a 3D volume from one CM2 measurement (paper Eq. 4) on an OpenCL device.
@@ -164,7 +161,7 @@ def reconstruct(measurement, psf, *, dtype=np.float32, backend: str = "auto", de
         return solver, rec
 
     if explicit_rounds(prm.psf_refine) or (optional and skipped is None):
-        solver, rec = _refined(solve, y, psf, weights, prm, padded_shape, x0, check_only=_CHECK_ONLY.get())
+        solver, rec = _refined(solve, y, psf, weights, prm, padded_shape, x0)
     else:
         solver, rec = solve(psf, replace(prm, psf_refine=0), padded_shape, x0)
         if optional:
@@ -202,10 +199,9 @@ def _refine_margin(psf, padded_shape) -> int:
 def refine_skipped(psf, padded_shape=None, support: bool = False, mode: str = "auto", radius: int = 3) -> str | None:
     """Why ``psf_refine=mode`` ('auto' or 'common', :data:`.psf_refine.OPTIONAL_MODES`) does not run here, or
     None: padding='support' (the refined PSF would reach past the measured support), a padded grid that
-    leaves less than the kernel ``radius`` around the sensor, a refinement that would need more than half
-    the host's available memory (its float64 lenslet images on the padded grid), and for 'auto' a PSF of
-    one view (a diffuser's caustic or a single lens: nothing to disagree) or whose pieces are not views
-    through its depth (:func:`.psf_refine.views_through_depth`)."""
+    leaves less than the kernel ``radius`` around the sensor, or a refinement that would need more than half
+    the host's available memory (its float64 lenslet images on the padded grid). 'auto' on a PSF whose views
+    cannot be compared runs as 'common' (:func:`.psf_refine.check_skipped`)."""
     from . import psf_refine as R
     from .forward import choose_padded_shape
     from .memory import host_available_bytes
@@ -215,14 +211,7 @@ def refine_skipped(psf, padded_shape=None, support: bool = False, mode: str = "a
     P = _padded_arg(padded_shape) if padded_shape is not None else choose_padded_shape(psf.shape[1:], "cl")
     if _refine_margin(psf, P) < radius:
         return f"the padded grid leaves less than the kernel radius ({radius} px) around the sensor"
-    n = 1
-    if mode == "auto":
-        labels = R.lenslet_labels(psf)
-        n = int(labels.max())
-        if n < 2:
-            return "the PSF has one view"
-        if not R.views_through_depth(psf, labels):
-            return "the PSF's pieces are not views through its depth"
+    n = int(R.lenslet_labels(psf).max()) if mode == "auto" else 1
     need = 8 * int(P[0]) * int(P[1]) * (3 * psf.shape[0] + n * R.depth_weights(psf.shape[0], 3).shape[0] + 4)
     if need > host_available_bytes() // 2:
         log.warning("psf_refine %s: the refinement needs %.1f GiB of host memory, more than half of what is "
@@ -231,46 +220,40 @@ def refine_skipped(psf, padded_shape=None, support: bool = False, mode: str = "a
     return None
 
 
-def psf_check(measurement, psf, **kw) -> Reconstruction:
-    """:func:`reconstruct` with ``psf_refine='auto'`` (``kw`` its other keywords) that stops after the check
-    where the views agree with the PSF: its ``info['psf_refine']`` says whether it refined (then it is the
-    whole refined reconstruction, ``rec.psf`` the stack) or not (then the volume is the check's sparse solve,
-    no answer: a series only needs the decision before it solves every frame)."""
-    token = _CHECK_ONLY.set(True)
-    try:
-        return reconstruct(measurement, psf, **{**kw, "psf_refine": "auto"})
-    finally:
-        _CHECK_ONLY.reset(token)
-
-
-def _refined(solve, y, psf, weights, prm, padded_shape, x0, check_only=False):
+def _refined(solve, y, psf, weights, prm, padded_shape, x0):
     """(solver, reconstruction) with the PSF self-calibrated (:mod:`.psf_refine`): ``prm.psf_refine`` rounds
-    of a ``psf_refine_iter``-iteration solve and a kernel fit per lenslet, each solve warm-started from the
-    last, then the solve to the stopping rule with the refined PSF; the record in ``info['psf_refine']``.
+    of a ``psf_refine_iter``-iteration solve and a kernel fit, each solve warm-started from the last, then the
+    solve to the stopping rule with the refined PSF; the record in ``info['psf_refine']``.
 
-    ``prm.psf_refine`` 'auto': the first round (a sparse solve, one kernel per lenslet) is also the check
-    (:func:`.psf_refine.view_disagreement`); when the views agree the PSF is used as given and the solve is
-    the plain one from ``x0`` (``check_only``: the check's reconstruction is returned instead, for a series
-    that only needs the decision), else the rest of ``AUTO_ROUNDS`` rounds follow. 'common': one round, one
-    kernel for every lenslet (its depth nodes as given)."""
+    'common': one round, one kernel for every lenslet (over ``psf_refine_depth_nodes``). 'auto': that round,
+    then the view check on the same volume (:func:`.psf_refine.view_disagreement`, kernels per lenslet fitted
+    to images of the commonly refined stack): where the lenslets' views disagree the check's kernels are
+    applied and the rest of ``AUTO_ROUNDS`` rounds of kernels per lenslet follow; where they agree, or the PSF
+    has no views to compare (:func:`.psf_refine.check_skipped`), the answer is the 'common' one. A number:
+    that many rounds of kernels per lenslet."""
     from . import psf_refine as R
 
-    common = prm.psf_refine == "common"
-    labels = np.ones(psf.shape[1:], np.int32) if common else R.lenslet_labels(psf)
+    mode = prm.psf_refine
+    staged = mode in R.OPTIONAL_MODES          # round 0 fits one kernel common to every lenslet
+    common_labels = np.ones(psf.shape[1:], np.int32)
+    labels = common_labels if mode == "common" else R.lenslet_labels(psf)
     w = pixel_weights(weights, y.shape)
-    auto = prm.psf_refine == "auto"
-    n = R.plan_rounds(prm.psf_refine)
+    n = R.plan_rounds(mode)
+    check_why = R.check_skipped(psf, labels) if mode == "auto" else None
     inner = replace(prm, psf_refine=n, max_iter=min(prm.psf_refine_iter, prm.max_iter))
     h = np.asarray(psf, np.float64)
     P, x_start, rounds, check = padded_shape, x0, [], None
-    for rnd in range(n):
+    rnd = 0
+    while rnd < n:
         scale, nodes = R.round_schedule(rnd, n, prm.psf_refine_l1_start, prm.psf_refine_depth_nodes)
+        lab = labels
+        if staged and rnd == 0:
+            lab, nodes = common_labels, prm.psf_refine_depth_nodes
         solver, rec = solve(h, replace(inner, l1_scale=prm.l1_scale * scale), P, x_start)
         P, x_start = solver.P, rec.volume_padded
         b = rec.background if rec.background is not None else 0.0
-        step = R.refine_step(h, labels, rec.volume_padded, y - b, prm.psf_refine_radius, w, depth_nodes=nodes,
-                             check=auto and rnd == 0)
-        h_new, k, misfit = step[:3]
+        h_new, k, misfit = R.refine_step(h, lab, rec.volume_padded, y - b, prm.psf_refine_radius, w,
+                                         depth_nodes=nodes)
         empty = misfit >= R.EMPTY_MISFIT
         if empty:   # the round's volume explains (almost) none of the data: there is nothing to fit kernels to
             k = np.zeros_like(k)
@@ -284,26 +267,34 @@ def _refined(solve, y, psf, weights, prm, padded_shape, x0, check_only=False):
         gains = [q["gain"] for q in rounds[-1]["kernels"]]
         log.info("PSF refinement round %d of %d: %d iterations, misfit %.4f before it; %d kernels, gains %.2f-%.2f",
                  len(rounds), n, rec.iterations, misfit, len(gains), min(gains), max(gains))
-        if auto and rnd == 0:
-            check = {**step[3], "iterations": rec.iterations, "l1_scale": scale}
-            log.info("psf_refine auto: the lenslets' kernels explain %.3f of the misfit beyond a common one "
-                     "(threshold %.3f): %s", check["disagreement"], check["threshold"],
-                     "refining" if check["refine"] else "the PSF is used as given")
-            if not check["refine"]:
-                if not check_only:
-                    solver, rec = solve(psf, replace(prm, psf_refine=0), padded_shape, x0)
-                rec.info["psf_refine"] = {"mode": "auto", "refined": False, "rounds": 0, "check": check,
-                                          "iterations_total": check["iterations"] + rec.iterations}
-                return solver, rec
+        if mode == "auto" and rnd == 0:
+            if empty or check_why is not None:
+                check_why = check_why or "the round's volume explained too little of the data"
+                n = 1
+            else:   # the check: kernels per lenslet on the same volume, imaged by the commonly refined stack
+                h_sep, k_sep, _, rec_check = R.refine_step(h, labels, rec.volume_padded, y - b,
+                                                           prm.psf_refine_radius, w, check=True)
+                check = {**rec_check, "iterations": rec.iterations, "l1_scale": scale}
+                log.info("psf_refine auto: the lenslets' kernels explain %.3f of the misfit beyond a common one "
+                         "(threshold %.3f): %s", check["disagreement"], check["threshold"],
+                         "refining them" if check["refine"] else "one kernel common to every lenslet")
+                if check["refine"]:
+                    h = h_sep
+                    rounds[-1]["lenslet_kernels"] = R.kernel_summary(k_sep)
+                else:
+                    n = 1
+        rnd += 1
     solver, rec = solve(h, replace(prm, psf_refine=n), P, x_start)
     rec.psf = h
-    rec.info["psf_refine"] = {"mode": prm.psf_refine if prm.psf_refine in R.OPTIONAL_MODES else "given",
+    rec.info["psf_refine"] = {"mode": mode if staged else "given",
                               "refined": not all(r["kept"] for r in rounds), "check": check,
-                              "rounds": n, "lenslets": int(labels.max()),
+                              "rounds": n, "lenslets": int(labels.max()) if n > 1 or mode != "auto" else 1,
                               "radius_px": prm.psf_refine_radius, "overrelax": R.OVERRELAX,
                               "depth_nodes": int(R.depth_weights(h.shape[0], prm.psf_refine_depth_nodes).shape[0]),
                               "l1_start": prm.psf_refine_l1_start, "per_round": rounds,
                               "iterations_total": sum(r["iterations"] for r in rounds) + rec.iterations}
+    if check_why is not None:
+        rec.info["psf_refine"]["check_skipped"] = check_why
     return solver, rec
 
 
@@ -342,4 +333,4 @@ def fft_backend(backend, device) -> str:
     return resolve_backend(backend, get_runtime(device))
 
 
-__all__ = ["reconstruct", "fft_backend", "check_scale", "refine_skipped", "refine_runs", "psf_check"]
+__all__ = ["reconstruct", "fft_backend", "check_scale", "refine_skipped", "refine_runs"]

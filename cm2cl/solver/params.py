@@ -153,24 +153,25 @@ class ADMMParams:
     l1_reweight_eps: float = _param(
         0.1, {"type": "float", "min": 0, "max": 10, "exclusive": True},
         "eps of the reweighted l1 as a fraction of the volume's maximum.", flag=True)
-    # 'common' by default: a blur or focus shift of the whole PSF made ghosts at the defaults and one round of a
-    # kernel common to every lenslet removes them at about the time of a plain solve, no verdict of the quality
-    # suite lost (docs/psf_refine.md); 'auto' cannot tell a PSF that does not match from emitters between
-    # coarse planes, and per-lenslet kernels harmed fibres, so they stay a choice
+    # 'auto' by default: one round of a kernel common to every lenslet removed the ghosts of a blurrier PSF off
+    # in depth at about the time of a plain solve, and the view check on that round's volume sends aberrated or
+    # vignetted PSFs on to kernels per lenslet (passing mm_aberr and mm_trunc of the quality suite) while matched
+    # ones, and the demo's beads between coarse planes, stay at 'common' (docs/psf_refine.md); per-lenslet
+    # rounds make an aberrated PSF on fibres worse (fibres_mm, which fails either way)
     psf_refine: int | str = _param(
-        "common", {"type": "int", "min": 0, "max": 20, "words": ("auto", "common")},
+        "auto", {"type": "int", "min": 0, "max": 20, "words": ("auto", "common")},
         "Rounds of PSF self-calibration (cm2cl.solver.psf_refine): after a solve of psf_refine_iter iterations, "
         "each lenslet's PSF is convolved with a small non-negative kernel fitted to the measurement (its local "
         "blur, shift and gain), and the volume is solved again from the last one; after the rounds the final "
         "solve runs to the stopping rule with the refined PSF (rec.psf, info['psf_refine']). For a PSF that "
-        "does not match the sample's optics (aberrations, vignetting, focus); 0: the PSF as given. 'auto': the "
-        "first round runs as a check, and the rest of 12 rounds follow only when the lenslets' views disagree "
-        "with the PSF (separate kernels per lenslet explain more than 2.5% of the misfit beyond one common kernel, "
-        "with an F statistic above 1.25; info['psf_refine']['check']), else the plain solve runs; 'auto' does "
-        "not refine a PSF of one view (a diffuser, a single lens), with padding='support' or lateral tiles. "
+        "does not match the sample's optics (aberrations, vignetting, focus); 0: the PSF as given. "
         "'common': one round with one kernel common to every lenslet (a blur or a shift of focus of the whole "
-        "PSF, interpolated over psf_refine_depth_nodes), not with padding='support' or lateral tiles (the PSF is "
-        "then used as given).",
+        "PSF, interpolated over psf_refine_depth_nodes). 'auto': that round, then a check on its volume: where "
+        "the lenslets' views disagree with the PSF (separate kernels per lenslet explain more than 2.5% of the "
+        "misfit beyond one common kernel, with an F statistic above 1.25; info['psf_refine']['check']) the rest "
+        "of 12 rounds of kernels per lenslet follow, else the answer is the 'common' one (also for a PSF of one "
+        "view: a diffuser, a single lens). 'auto' and 'common' do not run with padding='support' or lateral "
+        "tiles (the PSF is then used as given).",
         unit="rounds", flag=True)
     psf_refine_iter: int = _param(
         100, {"type": "int", "min": 1}, "Iterations of each solve before a PSF refinement round.", unit=_ITERS,

@@ -47,15 +47,17 @@ RIDGE = 1e-3
 OVERRELAX = 1.7
 #: a footprint piece of n is a view in a plane where it holds more than VIEW_SHARE / n of the plane's light
 VIEW_SHARE = 0.2
-#: psf_refine='auto': the rounds run when the views disagree (docs/psf_refine.md's schedule)
+#: psf_refine='auto': the rounds (the common one included) when the views disagree (docs/psf_refine.md's schedule)
 AUTO_ROUNDS = 12
-#: psf_refine='auto': refine when separate kernels per lenslet explain more than this fraction of the
-#: misfit beyond one common kernel (:func:`view_disagreement`), measured after the first round's sparse solve;
-#: on docs/psf_refine.md's 66 scenes matched PSFs gave at most 0.019 and mismatched ones at least 0.027
+#: psf_refine='auto': refine per lenslet when separate kernels per lenslet explain more than this fraction of
+#: the misfit beyond one common kernel (:func:`view_disagreement`), measured on the volume of the first round
+#: (a sparse solve, its PSF then refined by a kernel common to every lenslet): on docs/quality.md's 20 rendered
+#: scenes x 2 seeds matched and commonly blurred or shifted PSFs gave at most 0.021 and aberrated or vignetted
+#: ones at least 0.036, the demo's beads between 250-um planes 0.005-0.011 (docs/psf_refine.md)
 VIEW_DISAGREEMENT = 0.025
 #: ... and when the F statistic of that comparison exceeds this: the 0.999 quantile of F(392, N) for the
 #: default 9 lenslets x 49 taps on any sensor of 4000 pixels or more; non-negative kernels use fewer taps on
-#: noise than they have, so the test is conservative (white noise gives F ~ 0.3); matched PSFs gave at most 0.8
+#: noise than they have, so the test is conservative (white noise gives F ~ 0.3); matched PSFs gave at most 0.9
 VIEW_F = 1.25
 #: a round whose volume leaves at least this relative misfit (it explains 1% of the data or less: the sparse
 #: start removed everything, as the camera model's weights did at 200 photons) keeps the PSF: no kernel to fit
@@ -64,8 +66,9 @@ EMPTY_MISFIT = 0.99
 CHUNK_ENTRIES = 1 << 23
 #: psf_refine words that step aside where a refinement cannot run (padding='support', lateral tiles, too little
 #: host memory: the PSF is used as given and the reason recorded) where a number of rounds is refused:
-#: 'auto' checks the views and refines them only where they disagree; 'common' fits one kernel common to
-#: every lenslet (a blur or shift of focus of the whole PSF) in one round
+#: 'common' fits one kernel common to every lenslet (a blur or shift of focus of the whole PSF) in one round;
+#: 'auto' does that round, checks the lenslets' views on its volume and refines them one by one only where
+#: they disagree
 OPTIONAL_MODES = ("auto", "common")
 
 
@@ -75,8 +78,8 @@ def explicit_rounds(value) -> bool:
 
 
 def plan_rounds(value) -> int:
-    """The refinement rounds the psf_refine value ``value`` runs when it refines: 'auto' the whole schedule,
-    'common' one, a number that many, 0 none."""
+    """The refinement rounds the psf_refine value ``value`` runs at most: 'auto' the whole schedule (one when
+    its check finds the views in agreement), 'common' one, a number that many, 0 none."""
     return {"auto": AUTO_ROUNDS, "common": 1}.get(value, value or 0)
 
 
@@ -113,6 +116,17 @@ def views_through_depth(psf: np.ndarray, labels: np.ndarray) -> bool:
     share = np.stack([(psf * (labels == j + 1)).reshape(psf.shape[0], -1).sum(axis=1) for j in range(n)])
     share = share / np.where(total > 0, total, 1.0)[None, :]
     return bool(np.all((share > VIEW_SHARE / n).sum(axis=1) >= 0.5 * psf.shape[0]))
+
+
+def check_skipped(psf: np.ndarray, labels: np.ndarray) -> str | None:
+    """Why psf_refine='auto' cannot compare the lenslets' views of ``psf`` (its ``labels``,
+    :func:`lenslet_labels`), or None: one view (a diffuser's caustic or a single lens) or pieces that are no
+    views through its depth (:func:`views_through_depth`). Such a PSF gets the 'common' round alone."""
+    if int(labels.max()) < 2:
+        return "the PSF has one view"
+    if not views_through_depth(psf, labels):
+        return "the PSF's pieces are not views through its depth"
+    return None
 
 
 def depth_weights(nz: int, nodes: int) -> np.ndarray:
@@ -335,4 +349,5 @@ def view_disagreement(images, kernels, target, sensor_shape, radius: int, weight
 
 __all__ = ["lenslet_labels", "depth_weights", "round_schedule", "lenslet_images", "fit_kernels", "relax", "apply_kernels",
            "kernel_summary", "refine_step", "sensor_model", "view_disagreement", "views_through_depth", "AUTO_ROUNDS", "VIEW_DISAGREEMENT",
-           "VIEW_F", "OPTIONAL_MODES", "explicit_rounds", "plan_rounds", "EMPTY_MISFIT"]
+           "VIEW_F", "OPTIONAL_MODES", "explicit_rounds", "plan_rounds", "EMPTY_MISFIT",
+           "check_skipped"]
