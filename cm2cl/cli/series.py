@@ -104,8 +104,9 @@ def _refined(args, params, series, h, store, key, frame_prep, solver_kw, dt, wp)
     from ..jobs.refine import refined_psf_path, series_psf
 
     if not args.quiet:
-        how = {"common": "one kernel common to every lenslet", "auto": "one kernel common to every lenslet, then "
-               "kernels per lenslet where their views disagree"}.get(params.psf_refine, f"{params.psf_refine} rounds")
+        from ..solver.psf_refine import describe
+
+        how = describe(params.psf_refine)
         print(f"cm2cl: the PSF is refined on frame 0 ({how}) unless '{refined_psf_path(args.output)}' "
               "holds this job's", file=sys.stderr)
     solve_kw = {"dtype": dt, "backend": args.backend, "device": devices_arg(args.device)[0], **solver_kw}

@@ -42,6 +42,7 @@ def series_psf(output, key: str, series, h, store, prepare, params, *, solve_kw:
     layout)."""
     from .. import io
     from ..solver import reconstruct
+    from ..solver.psf_refine import describe
 
     path = refined_psf_path(output)
     if path.exists():
@@ -51,10 +52,7 @@ def series_psf(output, key: str, series, h, store, prepare, params, *, solve_kw:
             return np.asarray(psf, np.float64), True
     if len(store.missing()) < len(series):
         _missing(path, output)
-    log.info("refining the PSF on frame 0 (%s)", {"common": "one kernel common to every lenslet",
-                                                  "auto": "one kernel common to every lenslet, then kernels per "
-                                                          "lenslet where their views disagree"}
-             .get(params.psf_refine, f"{params.psf_refine} rounds"))
+    log.info("refining the PSF on frame 0 (%s)", describe(params.psf_refine))
     # the planes' scale goes with it: an attenuating sample needs their depths (the stack comes back unattenuated);
     # the stack is written even where a round had nothing to fit (the given one), so that a resumed job reads it
     rec = reconstruct(prepare(series.read(0)), h, voxel_size_um=voxel_size_um, depths_um=depths_um, **solve_kw,

@@ -51,9 +51,10 @@ VIEW_SHARE = 0.2
 AUTO_ROUNDS = 12
 #: psf_refine='auto': refine per lenslet when separate kernels per lenslet explain more than this fraction of
 #: the misfit beyond one common kernel (:func:`view_disagreement`), measured on the volume of the first round
-#: (a sparse solve, its PSF then refined by a kernel common to every lenslet): on docs/quality.md's 20 rendered
-#: scenes x 2 seeds matched and commonly blurred or shifted PSFs gave at most 0.021 and aberrated or vignetted
-#: ones at least 0.036, the demo's beads between 250-um planes 0.005-0.011 (docs/psf_refine.md)
+#: (a sparse solve, its PSF then refined by a kernel common to every lenslet): on docs/quality.md's rendered
+#: scenes (their own seeds and 3 more, docs/psf_refine_seeds.md) matched and commonly blurred or shifted PSFs
+#: gave at most 0.021 and aberrated or vignetted ones at least 0.029, the demo's beads between 250-um planes
+#: 0.005-0.011 (docs/psf_refine.md)
 VIEW_DISAGREEMENT = 0.025
 #: ... and when the F statistic of that comparison exceeds this: the 0.999 quantile of F(392, N) for the
 #: default 9 lenslets x 49 taps on any sensor of 4000 pixels or more; non-negative kernels use fewer taps on
@@ -81,6 +82,13 @@ def plan_rounds(value) -> int:
     """The refinement rounds the psf_refine value ``value`` runs at most: 'auto' the whole schedule (one when
     its check finds the views in agreement), 'common' one, a number that many, 0 none."""
     return {"auto": AUTO_ROUNDS, "common": 1}.get(value, value or 0)
+
+
+def describe(value) -> str:
+    """What the psf_refine value ``value`` fits, in words (a series' and a log's message)."""
+    return {"common": "one kernel common to every lenslet",
+            "auto": "one kernel common to every lenslet, then kernels per lenslet where their views disagree"
+            }.get(value, f"{value} rounds")
 
 
 def lenslet_labels(psf: np.ndarray) -> np.ndarray:
@@ -350,4 +358,4 @@ def view_disagreement(images, kernels, target, sensor_shape, radius: int, weight
 __all__ = ["lenslet_labels", "depth_weights", "round_schedule", "lenslet_images", "fit_kernels", "relax", "apply_kernels",
            "kernel_summary", "refine_step", "sensor_model", "view_disagreement", "views_through_depth", "AUTO_ROUNDS", "VIEW_DISAGREEMENT",
            "VIEW_F", "OPTIONAL_MODES", "explicit_rounds", "plan_rounds", "EMPTY_MISFIT",
-           "check_skipped"]
+           "check_skipped", "describe"]
