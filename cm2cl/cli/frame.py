@@ -259,10 +259,11 @@ def refine_line(record) -> str:
     if record.get("check_skipped") and record.get("refined"):
         test = f"the lenslets' views not compared ({record['check_skipped']})"
     if record.get("refined"):
-        what = (f"{record['rounds']} rounds" if record["rounds"] > 1 else "1 round, one kernel common to every lenslet"
-                if record.get("mode") in ("common", "auto") else "1 round")
-        if record["rounds"] > 1 and record.get("mode") == "auto":
-            what += " (one kernel common to every lenslet, then kernels per lenslet)"
+        if record["rounds"] > 1:
+            what = f"{record['rounds']} rounds" + (" (one kernel common to every lenslet, then kernels per lenslet)"
+                                                   if record.get("mode") == "auto" else "")
+        else:
+            what = "1 round" + (", one kernel common to every lenslet" if record.get("mode") in OPTIONAL_MODES else "")
         head = f"PSF refined in {what} ({record['iterations_total']} iterations in all)"
         return head + (f"; --psf-refine auto: {test}" if test else "")
     if record.get("per_round") and all(r.get("kept") for r in record["per_round"]):
