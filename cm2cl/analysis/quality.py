@@ -472,6 +472,8 @@ def scene_specs(quick: bool = False) -> list[SceneSpec]:
         SceneSpec("mm_trunc", "truncated PSF (outer lenslets vignetted by up to 60%, field stop)",
                   mismatch=Mismatch(vignette=0.6)),
         SceneSpec("mm_all", "all four mismatches together", mismatch=allm),
+        SceneSpec("mm_blur_aberr", "blurrier and aberrated PSF together (the blur hides the aberration's "
+                  "spot shapes)", mismatch=Mismatch(blur=1.0, aberration=1.0)),
         SceneSpec("mm_issue", "30 beads, blurrier PSF 0.4 plane off in depth, haze 8%, 800 photons (the issue's "
                   "mismatch case)", n_beads=30, mismatch=Mismatch(blur=1.0, dz=0.4), background="haze",
                   bg_level=0.08, photons=800.0, seed=2),
