@@ -23,6 +23,7 @@ import numpy as np
 
 import cm2cl
 from cm2cl.analysis import quality as Q
+from cm2cl.solver.psf_refine import VIEW_DISAGREEMENT
 
 DOCS = Path(__file__).resolve().parents[1] / "docs"
 SCENES = "beads,photons200,bg_haze10,bg_ramp20,dense,edge_planes,between,mm_blur,mm_depth,mm_issue,fibres,fibres_blur"
@@ -92,7 +93,7 @@ def markdown(rows, modes, seconds: float, argv: str) -> str:
              "cell: recall / false maxima per 10 beads / mean |axial error| (planes), or the fibres' energy within 2 "
              "voxels of the truth; '(fail)' where a target of docs/quality.md is missed; refinement rounds run, "
              "'auto''s view check d (the misfit share kernels per lenslet explain beyond a common one; they "
-             "refine above 0.025), iterations in all (the rounds' included) and seconds of the call.\n",
+             f"refine above {VIEW_DISAGREEMENT:g}), iterations in all (the rounds' included) and seconds of the call.\n",
              "| scene | seed | " + " | ".join(f"psf_refine={v!r} ({lab})" for lab, v in modes) + " |",
              "|---|---|" + "---|" * len(modes)]
     for r in rows:

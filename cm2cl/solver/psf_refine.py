@@ -54,7 +54,9 @@ AUTO_ROUNDS = 12
 #: (a sparse solve, its PSF then refined by a kernel common to every lenslet): on docs/quality.md's rendered
 #: scenes (their own seeds and 3 more, docs/psf_refine_seeds.md) matched and commonly blurred or shifted PSFs
 #: gave at most 0.021 and aberrated or vignetted ones at least 0.029, the demo's beads between 250-um planes
-#: 0.005-0.011 (docs/psf_refine.md)
+#: 0.005-0.011 (docs/psf_refine.md); an aberrated PSF blurred as well (mm_blur_aberr) gave 0.018-0.034 and is
+#: refined on some seeds only: lower thresholds that catch it also refined blurred fibre scenes and ruined one
+#: (docs/psf_refine.md, stop 41)
 VIEW_DISAGREEMENT = 0.025
 #: ... and when the F statistic of that comparison exceeds this: the 0.999 quantile of F(392, N) for the
 #: default 9 lenslets x 49 taps on any sensor of 4000 pixels or more; non-negative kernels use fewer taps on
