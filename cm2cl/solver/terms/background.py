@@ -99,19 +99,26 @@ class LeastSquaresBackground(LeastSquares):
         self.given_spacing = spacing_px
         self.fit = None
         self._b = None
+        self._q = self._t = None
 
     def setup(self, s) -> None:
         self.fit = Background(s.M, knot_spacing(s.psf_support_px, s.M, self.given_spacing))
+        self._q = self._t = None
 
     def _weights(self, s, mu):
-        w = s.pixel_weights
-        return w * mu / (w + mu)
+        """Q = W mu / (W + mu), kept while mu stays (it changes only when the penalty policy moves it)."""
+        if self._q is None or self._q[0] != mu:
+            w = s.pixel_weights
+            self._q = (mu, w * mu / (w + mu))
+        return self._q[1]
 
     def _set_target(self, s, b) -> None:
-        """The plane C^T (y - b) that the least-squares step fits (its 'cty')."""
-        t = np.zeros(s.P)
-        t[s.crop] = s.y_n - b
-        s.parts[0].planes["ytb"].set(t[None].astype(s.dtype))
+        """The plane C^T (y - b) that the least-squares step fits (its 'cty'), through one host plane kept
+        for the solve (zero off the sensor)."""
+        if self._t is None or self._t.shape != (1,) + tuple(s.P) or self._t.dtype != s.dtype:
+            self._t = np.zeros((1,) + tuple(s.P), s.dtype)
+        self._t[0][s.crop] = s.y_n - b
+        s.parts[0].planes["ytb"].set(self._t)
 
     def start(self, s, ctl) -> None:
         """b = 0 at the start (v = W y / (W + mu)); the first data step fits b beside the first H x. (Fitting b
@@ -119,6 +126,7 @@ class LeastSquaresBackground(LeastSquares):
         slowly: 513 against 324 iterations to the stopping rule on DiffuserCam 3D binned 4x, 11 planes.) A warm
         start thus depends on the stored x0 alone, and a resumed job gives the same bits."""
         super().start(s, ctl)
+        self._q = None   # a new solve may bring new pixel weights
         self._change = (0.0, 0.0)
         self.fit.c[...] = 0.0
         self._b = self.fit.plane()
@@ -128,6 +136,7 @@ class LeastSquaresBackground(LeastSquares):
         """A warm start consistent with x0 (:meth:`LeastSquares.warm`): b fitted to y - C H x0 with the
         pixels' weights W (what the v step's fit tends to as mu grows), then v = H x0 and
         xi = C^T W (C H x0 + b - y)."""
+        self._q = None
         hx = s.parts[0].planes["hx"].get()[0][s.crop].astype(np.float64)
         self._b = self.fit.fit(s.y_n - hx, s.pixel_weights, "warm")
         self._set_target(s, self._b)
