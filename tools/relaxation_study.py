@@ -1,9 +1,12 @@
-"""How over-relaxation (``relaxation``, alpha) changes the iterations to an answer (issue 28): for each case
-and alpha, one long solve with no stopping rule (tol 0) gives the objective's history, and a solve at the
-defaults (the stopping rule) the iterations, the objective gap and the quality where the rule stops.
+"""How a solver parameter changes the iterations to an answer (issue 28): over-relaxation (``relaxation``,
+alpha; the default) or the initial data penalty (``mu_v``, which scales every initial penalty: the
+identity splits' start at spectral_mean x mu_v). For each case and value, one long solve with no stopping
+rule (tol 0) gives the objective's history, and a solve at the defaults (the stopping rule) the
+iterations, the objective gap and the quality where the rule stops.
 
     python tools/relaxation_study.py [--alphas 1,1.5,1.6,1.8] [--iters 2000] [--cases beads,mm_aberr,...]
         [--out docs/relaxation.md]
+    python tools/relaxation_study.py --param mu_v --values 0.1,0.2,0.3,0.5,1 --out docs/penalty.md
 
 Cases: the quality suite's scenes (cm2cl/analysis/quality.py: rendered with a PSF the reconstruction is not
 given), ``cm2cl demo``'s scene, and the real DiffuserCam 2D (binned 4x) and 3D (binned 4x) data. The reference objective of a case is
@@ -60,22 +63,22 @@ def iterations_to(objective, ref: float, gap: float):
     return int(bad[-1] + 2) if bad.size else 1
 
 
-def run_case(name: str, alphas, iters: int, log=print) -> list[dict]:
+def run_case(name: str, alphas, iters: int, log=print, param: str = "relaxation") -> list[dict]:
     psf, y, beads = load_case(name)
     long, stop = {}, {}
     for a in alphas:
         t = time.perf_counter()
-        rec = cm2cl.reconstruct(y, psf, relaxation=a, max_iter=iters, tol=0.0, psf_refine=0)
+        rec = cm2cl.reconstruct(y, psf, **{param: a}, max_iter=iters, tol=0.0, psf_refine=0)
         long[a] = (np.asarray(rec.history["objective"]), time.perf_counter() - t)
         t = time.perf_counter()
-        stop[a] = (cm2cl.reconstruct(y, psf, relaxation=a, psf_refine=0), time.perf_counter() - t)
-        log(f"{name} alpha {a:g}: {iters} iterations {long[a][1]:.1f} s; default stop {len(stop[a][0].log)} it")
+        stop[a] = (cm2cl.reconstruct(y, psf, **{param: a}, psf_refine=0), time.perf_counter() - t)
+        log(f"{name} {param} {a:g}: {iters} iterations {long[a][1]:.1f} s; default stop {len(stop[a][0].log)} it")
     ref = min([float(o[-1]) for o, _ in long.values()] + [float(r.log[-1]["objective"]) for r, _ in stop.values()])
     rows = []
     for a in alphas:
         obj, secs = long[a]
         rec, ssecs = stop[a]
-        row = {"case": name, "alpha": a, "s_per_iter": secs / iters}
+        row = {"case": name, "value": a, "s_per_iter": secs / iters}
         for g in GAPS:
             row[f"to_{g:g}"] = iterations_to(obj, ref, g)
         row["stop_iter"] = len(rec.log)
@@ -87,7 +90,7 @@ def run_case(name: str, alphas, iters: int, log=print) -> list[dict]:
             s = Q.score_beads(rec.volume, beads)
             row.update(recall=s["recall"], false_per_10=s["false_per_10"], axial_err=s["axial_err"])
         rows.append(row)
-        log(f"  alpha {a:g}: to 1% {row['to_0.01']}, to 0.1% {row['to_0.001']}, stop {row['stop_iter']} it "
+        log(f"  {param} {a:g}: to 1% {row['to_0.01']}, to 0.1% {row['to_0.001']}, stop {row['stop_iter']} it "
             f"(gap {row['stop_gap']:.2e})" + (f", recall {row['recall']:.2f}" if beads is not None else ""))
     return rows
 
@@ -98,40 +101,48 @@ def fmt(v, spec=""):
     return format(v, spec)
 
 
+TITLES = {"relaxation": "Over-relaxation: iterations to an answer",
+          "mu_v": "The initial penalty: iterations to an answer"}
+LABELS = {"relaxation": "alpha"}
+
+
 def write_md(rows, path: Path, args, seconds: float) -> None:
     from cm2cl.device.runtime import get_runtime
 
     rt = get_runtime(None)
+    param = args.param
+    lab = LABELS.get(param, param)
+    flag = "--alphas" if param == "relaxation" else f"--param {param} --values"
     lines = [
-        "# Over-relaxation: iterations to an answer",
+        f"# {TITLES.get(param, param + ': iterations to an answer')}",
         "",
-        f"Made by `python tools/relaxation_study.py --alphas {args.alphas} --iters {args.iters} --cases {args.cases}` "
+        f"Made by `python tools/relaxation_study.py {flag} {args.values} --iters {args.iters} --cases {args.cases}` "
         f"in {seconds / 60:.1f} min on {rt.caps.platform} ({rt.caps.name}), {platform.machine()}, one run. "
         "Every other parameter at its default (background in the model, l1 at the universal threshold, TV off). "
         "For each case the reference is the lowest final objective of the long solves; 'to 1%' is the iteration "
         "after which the objective stays within 1% of it. 'stop' is the default stopping rule's solve: its "
         "iterations, its objective's gap to the reference, and for bead scenes the quality there.",
         "",
-        "| case | alpha | to 1% | to 0.1% | stop: iterations | stop: gap | stop: s | recall | false / 10 | axial err |",
+        f"| case | {lab} | to 1% | to 0.1% | stop: iterations | stop: gap | stop: s | recall | false / 10 | axial err |",
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
-        lines.append(f"| {r['case']} | {r['alpha']:g} | {fmt(r['to_0.01'])} | {fmt(r['to_0.001'])} | "
+        lines.append(f"| {r['case']} | {r['value']:g} | {fmt(r['to_0.01'])} | {fmt(r['to_0.001'])} | "
                      f"{r['stop_iter']} ({r['stop_rule']}) | {r['stop_gap']:.2e} | {r['stop_s']:.1f} | "
                      f"{fmt(r.get('recall'), '.2f')} | {fmt(r.get('false_per_10'), '.1f')} | "
                      f"{fmt(r.get('axial_err'), '.2f')} |")
     lines.append("")
-    base = {r["case"]: r for r in rows if r["alpha"] == 1.0}
+    base = {r["case"]: r for r in rows if r["value"] == 1.0}
+    values = sorted({r["value"] for r in rows} - {1.0})
     if base:
-        lines += ["## Ratios to alpha = 1 (iterations to 1%)", "", "| case | " + " | ".join(
-            f"alpha {a:g}" for a in sorted({r['alpha'] for r in rows}) if a != 1.0) + " |",
-            "|---|" + "---|" * (len({r['alpha'] for r in rows}) - 1)]
+        lines += [f"## Ratios to {lab} = 1 (iterations to 1%)", "", "| case | " + " | ".join(
+            f"{lab} {a:g}" for a in values) + " |", "|---|" + "---|" * len(values)]
         for case, b in base.items():
             cells = []
-            for r in rows:
-                if r["case"] == case and r["alpha"] != 1.0:
-                    ok = b["to_0.01"] and r["to_0.01"]
-                    cells.append(f"{b['to_0.01'] / r['to_0.01']:.2f}x" if ok else "-")
+            for a in values:
+                r = next((r for r in rows if r["case"] == case and r["value"] == a), None)
+                ok = r is not None and b["to_0.01"] and r["to_0.01"]
+                cells.append(f"{b['to_0.01'] / r['to_0.01']:.2f}x" if ok else "-")
             lines.append(f"| {case} | " + " | ".join(cells) + " |")
         lines.append("")
     path.write_text("\n".join(lines))
@@ -139,18 +150,20 @@ def write_md(rows, path: Path, args, seconds: float) -> None:
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--alphas", default="1,1.5,1.6,1.8")
+    ap.add_argument("--param", default="relaxation", choices=sorted(TITLES), help="the parameter varied")
+    ap.add_argument("--values", "--alphas", dest="values", default="1,1.5,1.6,1.8", help="its values, comma-separated")
     ap.add_argument("--iters", type=int, default=2000)
     ap.add_argument("--cases", default="beads,mm_aberr,photons200,bg_haze10,fibres,demo,dc2d,dc3d")
-    ap.add_argument("--out", type=Path, default=ROOT / "docs" / "relaxation.md")
+    ap.add_argument("--out", type=Path, default=None, help="default docs/relaxation.md (relaxation), docs/penalty.md (mu_v)")
     args = ap.parse_args(argv)
-    alphas = [float(a) for a in args.alphas.split(",")]
+    out = args.out or ROOT / "docs" / ("relaxation.md" if args.param == "relaxation" else "penalty.md")
+    values = [float(a) for a in args.values.split(",")]
     t0 = time.perf_counter()
     rows = []
     for c in args.cases.split(","):
-        rows += run_case(c, alphas, args.iters)
-    write_md(rows, args.out, args, time.perf_counter() - t0)
-    print(f"wrote {args.out}")
+        rows += run_case(c, values, args.iters, param=args.param)
+    write_md(rows, out, args, time.perf_counter() - t0)
+    print(f"wrote {out}")
 
 
 if __name__ == "__main__":
