@@ -9,7 +9,7 @@ import pytest
 
 import cm2cl
 from cm2cl import reference as ref
-from cm2cl.solver.control import NOISE_FLOOR, Control, ProblemScale, SplitStats, noise_sigma
+from cm2cl.solver.control import DATA_PENALTY, NOISE_FLOOR, Control, ProblemScale, SplitStats, noise_sigma
 from cm2cl.solver.params import ADMMParams
 from test_admm import bead_problem
 
@@ -36,8 +36,9 @@ def test_default_weights_follow_the_noise_level():
     assert b.weights(p)[0] / a.weights(p)[0] == pytest.approx(2.0, rel=0.1)
     assert ProblemScale.of(y, 1e-3).noise_sigma == NOISE_FLOOR          # noise-free: the floor
     assert a.weights(ADMMParams(l1=0.5, tv=0.0)) == (0.5, 0.0)          # absolute overrides win
-    # initial penalties: mu_v = 1, mu_u = mu_w = the mean of H^T H's spectrum
-    assert a.penalties(p) == (1.0, 1e-3, 1e-3)
+    # initial penalties: mu_v = DATA_PENALTY, mu_u = mu_w = mu_v x the mean of H^T H's spectrum
+    assert a.penalties(p) == pytest.approx((DATA_PENALTY, 1e-3 * DATA_PENALTY, 1e-3 * DATA_PENALTY))
+    assert a.penalties(ADMMParams(mu_v=1.0)) == (1.0, 1e-3, 1e-3)
 
 
 def test_default_weights_follow_the_back_projected_noise():
