@@ -7,6 +7,10 @@ iterations, the objective gap and the quality where the rule stops.
     python tools/relaxation_study.py [--alphas 1,1.5,1.6,1.8] [--iters 2000] [--cases beads,mm_aberr,...]
         [--out docs/relaxation.md]
     python tools/relaxation_study.py --param mu_v --values 0.1,0.2,0.3,0.5,1 --out docs/penalty.md
+    python tools/relaxation_study.py --variants "issue=relaxation:1,mu_v:1;defaults=" --out docs/iterations.md
+
+``--variants``: named sets of keywords instead of one parameter's values (an empty set: the defaults); the
+first is the one the others are compared with.
 
 Cases: the quality suite's scenes (cm2cl/analysis/quality.py: rendered with a PSF the reconstruction is not
 given), ``cm2cl demo``'s scene, and the real DiffuserCam 2D (binned 4x) and 3D (binned 4x) data. The reference objective of a case is
@@ -50,6 +54,9 @@ def load_case(name: str):
     if name == "dc3d":
         psf, y = datasets.diffusercam_3d(4)
         return psf, y, None
+    if name == "dc3d_bin2":     # the issue's DiffuserCam 3D case (binned 2x)
+        psf, y = datasets.diffusercam_3d(2)
+        return psf, y, None
     specs = {s.name: s for s in Q.scene_specs()}
     sc = Q.render_scene(specs[name])
     return sc.psf, sc.y, sc.beads
@@ -63,16 +70,28 @@ def iterations_to(objective, ref: float, gap: float):
     return int(bad[-1] + 2) if bad.size else 1
 
 
-def run_case(name: str, alphas, iters: int, log=print, param: str = "relaxation") -> list[dict]:
+def parse_variants(text: str) -> dict:
+    """"name=k:v,k:v;name2=" -> {name: {k: float(v)}} (in order)."""
+    out = {}
+    for item in filter(None, (s.strip() for s in text.split(";"))):
+        name, _, kws = item.partition("=")
+        out[name.strip()] = {k.strip(): float(v) for k, v in (kv.split(":") for kv in filter(None, kws.split(",")))}
+    return out
+
+
+def run_case(name: str, alphas, iters: int, log=print, param: str = "relaxation", variants=None) -> list[dict]:
+    """``alphas``: the values of ``param``; or ``variants`` ({label: keywords}), whose labels key the rows."""
     psf, y, beads = load_case(name)
+    variants = variants or {a: {param: a} for a in alphas}
+    alphas = list(variants)
     long, stop = {}, {}
-    for a in alphas:
+    for a, kw in variants.items():
         t = time.perf_counter()
-        rec = cm2cl.reconstruct(y, psf, **{param: a}, max_iter=iters, tol=0.0, psf_refine=0)
+        rec = cm2cl.reconstruct(y, psf, **kw, max_iter=iters, tol=0.0, psf_refine=0)
         long[a] = (np.asarray(rec.history["objective"]), time.perf_counter() - t)
         t = time.perf_counter()
-        stop[a] = (cm2cl.reconstruct(y, psf, **{param: a}, psf_refine=0), time.perf_counter() - t)
-        log(f"{name} {param} {a:g}: {iters} iterations {long[a][1]:.1f} s; default stop {len(stop[a][0].log)} it")
+        stop[a] = (cm2cl.reconstruct(y, psf, **kw, psf_refine=0), time.perf_counter() - t)
+        log(f"{name} {param} {a}: {iters} iterations {long[a][1]:.1f} s; default stop {len(stop[a][0].log)} it")
     ref = min([float(o[-1]) for o, _ in long.values()] + [float(r.log[-1]["objective"]) for r, _ in stop.values()])
     rows = []
     for a in alphas:
@@ -90,7 +109,7 @@ def run_case(name: str, alphas, iters: int, log=print, param: str = "relaxation"
             s = Q.score_beads(rec.volume, beads)
             row.update(recall=s["recall"], false_per_10=s["false_per_10"], axial_err=s["axial_err"])
         rows.append(row)
-        log(f"  {param} {a:g}: to 1% {row['to_0.01']}, to 0.1% {row['to_0.001']}, stop {row['stop_iter']} it "
+        log(f"  {param} {a}: to 1% {row['to_0.01']}, to 0.1% {row['to_0.001']}, stop {row['stop_iter']} it "
             f"(gap {row['stop_gap']:.2e})" + (f", recall {row['recall']:.2f}" if beads is not None else ""))
     return rows
 
@@ -102,8 +121,9 @@ def fmt(v, spec=""):
 
 
 TITLES = {"relaxation": "Over-relaxation: iterations to an answer",
-          "mu_v": "The initial penalty: iterations to an answer"}
-LABELS = {"relaxation": "alpha"}
+          "mu_v": "The initial penalty: iterations to an answer",
+          "variants": "Iterations to an answer: settings compared"}
+LABELS = {"relaxation": "alpha", "variants": "settings"}
 
 
 def write_md(rows, path: Path, args, seconds: float) -> None:
@@ -112,11 +132,12 @@ def write_md(rows, path: Path, args, seconds: float) -> None:
     rt = get_runtime(None)
     param = args.param
     lab = LABELS.get(param, param)
-    flag = "--alphas" if param == "relaxation" else f"--param {param} --values"
+    flag = {"relaxation": "--alphas", "variants": "--variants"}.get(param, f"--param {param} --values")
+    values = f'"{args.variants}"' if param == "variants" else args.values
     lines = [
         f"# {TITLES.get(param, param + ': iterations to an answer')}",
         "",
-        f"Made by `python tools/relaxation_study.py {flag} {args.values} --iters {args.iters} --cases {args.cases}` "
+        f"Made by `python tools/relaxation_study.py {flag} {values} --iters {args.iters} --cases {args.cases}` "
         f"in {seconds / 60:.1f} min on {rt.caps.platform} ({rt.caps.name}), {platform.machine()}, one run. "
         "Every other parameter at its default (background in the model, l1 at the universal threshold, TV off). "
         "For each case the reference is the lowest final objective of the long solves; 'to 1%' is the iteration "
@@ -127,16 +148,20 @@ def write_md(rows, path: Path, args, seconds: float) -> None:
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
-        lines.append(f"| {r['case']} | {r['value']:g} | {fmt(r['to_0.01'])} | {fmt(r['to_0.001'])} | "
+        lines.append(f"| {r['case']} | {r['value'] if isinstance(r['value'], str) else format(r['value'], 'g')} | {fmt(r['to_0.01'])} | {fmt(r['to_0.001'])} | "
                      f"{r['stop_iter']} ({r['stop_rule']}) | {r['stop_gap']:.2e} | {r['stop_s']:.1f} | "
                      f"{fmt(r.get('recall'), '.2f')} | {fmt(r.get('false_per_10'), '.1f')} | "
                      f"{fmt(r.get('axial_err'), '.2f')} |")
     lines.append("")
-    base = {r["case"]: r for r in rows if r["value"] == 1.0}
-    values = sorted({r["value"] for r in rows} - {1.0})
+    first = rows[0]["value"] if param == "variants" and rows else 1.0
+    base = {r["case"]: r for r in rows if r["value"] == first}
+    values = list(dict.fromkeys(r["value"] for r in rows if r["value"] != first))
+    if param != "variants":
+        values = sorted(values)
     if base:
-        lines += [f"## Ratios to {lab} = 1 (iterations to 1%)", "", "| case | " + " | ".join(
-            f"{lab} {a:g}" for a in values) + " |", "|---|" + "---|" * len(values)]
+        name = lambda a: a if isinstance(a, str) else f"{lab} {a:g}"  # noqa: E731
+        lines += [f"## Ratios to {name(first)} (iterations to 1%)", "", "| case | " + " | ".join(
+            name(a) for a in values) + " |", "|---|" + "---|" * len(values)]
         for case, b in base.items():
             cells = []
             for a in values:
@@ -150,18 +175,23 @@ def write_md(rows, path: Path, args, seconds: float) -> None:
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--param", default="relaxation", choices=sorted(TITLES), help="the parameter varied")
+    ap.add_argument("--param", default="relaxation", choices=sorted(set(TITLES) - {"variants"}),
+                    help="the parameter varied")
+    ap.add_argument("--variants", default=None, help='named keyword sets instead, e.g. "issue=relaxation:1,mu_v:1;defaults="')
     ap.add_argument("--values", "--alphas", dest="values", default="1,1.5,1.6,1.8", help="its values, comma-separated")
     ap.add_argument("--iters", type=int, default=2000)
     ap.add_argument("--cases", default="beads,mm_aberr,photons200,bg_haze10,fibres,demo,dc2d,dc3d")
     ap.add_argument("--out", type=Path, default=None, help="default docs/relaxation.md (relaxation), docs/penalty.md (mu_v)")
     args = ap.parse_args(argv)
-    out = args.out or ROOT / "docs" / ("relaxation.md" if args.param == "relaxation" else "penalty.md")
+    variants = parse_variants(args.variants) if args.variants else None
+    if variants:
+        args.param = "variants"
+    out = args.out or ROOT / "docs" / {"relaxation": "relaxation.md", "mu_v": "penalty.md"}.get(args.param, "iterations.md")
     values = [float(a) for a in args.values.split(",")]
     t0 = time.perf_counter()
     rows = []
     for c in args.cases.split(","):
-        rows += run_case(c, values, args.iters, param=args.param)
+        rows += run_case(c, values, args.iters, param=args.param, variants=variants)
     write_md(rows, out, args, time.perf_counter() - t0)
     print(f"wrote {out}")
 
