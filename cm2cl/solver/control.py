@@ -22,7 +22,7 @@ NOISE_FLOOR = 1e-4
 ABS_FRACTION = 1e-3
 #: the initial data penalty mu_v on the normalised problem (every identity split starts at spectral_mean
 #: x mu_v): on the study's 8 cases (docs/penalty.md; 6 rendered scenes, the demo, DiffuserCam 2D and 3D)
-#: 0.2 took 1.7-5.5x fewer iterations to 1% of the optimum than 1, within 15% of the fewest on 6 of them,
+#: 0.2 took 1.7-5.5x fewer iterations to 1% of the optimum than 1, within 16% of the fewest on 6 of them,
 #: and is the smallest value that reached 0.1% on all 8 within 2000 iterations (0.1 did not on 4)
 DATA_PENALTY = 0.2
 
