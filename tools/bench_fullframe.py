@@ -33,8 +33,9 @@ from benchlib import markdown_table  # noqa: E402
 
 DOCS = Path(__file__).resolve().parents[1] / "docs"
 GIB = 2 ** 30
-#: iterations the default stopping rule took on the relaxation study's cases (docs/relaxation.md: 599 to
-#: 1056 to within 1% of the optimum; the default stops at 700 to 940): the projection's typical count
+#: the projection's typical count of iterations: the default stopping rule took 293 to 756 on the penalty
+#: study's cases (docs/penalty.md, mu_v 0.2) and 700 on DiffuserCam 3D binned 2x (docs/iterations.md);
+#: 800 stays above all of them (before mu_v 0.2 the stops were 700 to 940: docs/relaxation.md)
 TYPICAL_ITERS = 800
 
 
