@@ -38,7 +38,7 @@ def test_default_weights_follow_the_noise_level():
     assert a.weights(ADMMParams(l1=0.5, tv=0.0)) == (0.5, 0.0)          # absolute overrides win
     # initial penalties: mu_v = DATA_PENALTY, mu_u = mu_w = mu_v x the mean of H^T H's spectrum
     assert a.penalties(p) == pytest.approx((DATA_PENALTY, 1e-3 * DATA_PENALTY, 1e-3 * DATA_PENALTY))
-    assert a.penalties(ADMMParams(mu_v=1.0)) == (1.0, 1e-3, 1e-3)
+    assert a.penalties(ADMMParams(mu_v=0.2)) == pytest.approx((0.2, 2e-4, 2e-4))
 
 
 def test_default_weights_follow_the_back_projected_noise():

@@ -21,10 +21,11 @@ NOISE_FLOOR = 1e-4
 #: an iterate that vanishes (weights far above the data) is judged against the data's scale, not 0
 ABS_FRACTION = 1e-3
 #: the initial data penalty mu_v on the normalised problem (every identity split starts at spectral_mean
-#: x mu_v): on the study's 8 cases (docs/penalty.md; 6 rendered scenes, the demo, DiffuserCam 2D and 3D)
-#: 0.2 took 1.7-5.5x fewer iterations to 1% of the optimum than 1, within 16% of the fewest on 6 of them,
-#: and is the smallest value that reached 0.1% on all 8 within 2000 iterations (0.1 did not on 4)
-DATA_PENALTY = 0.2
+#: x mu_v): 1, the data term's curvature. 0.2 took 1.7-5.5x fewer iterations to 1% of the optimum on the
+#: penalty study's 8 cases but none fewer on DiffuserCam 3D binned 2x, and its better-converged answers
+#: lost a scene of the quality suite (mm_issue: 1.3 false maxima per 10 beads) and false maxima on
+#: mm_blur_aberr (16.0 -> 23.8 per 10): not the default (docs/penalty.md, docs/iterations.md)
+DATA_PENALTY = 1.0
 
 
 def noise_sigma(y) -> float:
@@ -85,7 +86,7 @@ class ProblemScale:
 
     def penalty(self, p: ADMMParams, name: str, kind: str) -> float:
         """Initial penalty of split ``name``: the given ``mu_<name>``, or for the data split mu_v =
-        DATA_PENALTY (a fifth of the data term's curvature on the normalised problem) and for a split z = x
+        DATA_PENALTY (the data term's curvature on the normalised problem) and for a split z = x
         spectral_mean * mu_v: the x step then weighs the data and the splits equally at a frequency of
         average power (near 1, the splits dominate at every frequency but the strongest and the solve
         creeps). The adaptation raises penalties that start low quickly and reliably, one far too high less

@@ -92,8 +92,8 @@ class ADMMParams:
         "Chambolle dual iterations of the TV prox per ADMM iteration (warm-started).", unit=_ITERS, flag=True)
     mu_v: float | None = _param(
         None, _POS, "Initial ADMM penalty of the split v = Hx.",
-        auto="from the problem's scale: 0.2, a fifth of the data term's curvature on the ||H|| = 1 scale (chosen on "
-             "docs/penalty.md's study: 1.7-5.5x fewer iterations than 1)")
+        auto="from the problem's scale: 1, the data term's curvature on the ||H|| = 1 scale (0.2 takes 1.7-5.5x fewer "
+             "iterations on most cases but converges to answers the quality suite scores lower: docs/penalty.md)")
     mu_u: float | None = _param(
         None, _POS, "Initial ADMM penalty of the split u = x (TV).",
         auto="mu_v x the mean of H^T H's spectrum (its maximum is 1)")
