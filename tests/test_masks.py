@@ -96,3 +96,31 @@ def test_cli_reports_and_masks(rt, tmp_path, capsys):
     assert rec["info"]["pixels"]["saturated"]["count"] == 1 and rec["info"]["pixels"]["masked"] == ["saturated", "hot"]
     assert main(base + ["-o", str(tmp_path / "c.ome.tif"), "--mask", "cold"]) == 2
     assert "--mask: unknown 'cold'" in capsys.readouterr().err and not (tmp_path / "c.ome.tif").exists()
+
+
+def test_a_reused_solver_takes_new_weights_with_the_background_in_the_model(rt64):
+    """A series reuses one solver for frame after frame, each with its own pixel weights: the background's
+    fit must weigh the second frame's pixels by the second set of weights, not keep the first set's Q.
+    Checked against a fresh solver (the same bits) and against the float64 twin."""
+    from cm2cl.solver.admm import ADMMSolver
+    from cm2cl.solver.params import ADMMParams
+
+    psf, _, y = bead_problem(4)
+    rng = np.random.default_rng(21)
+    y = y + 0.05 * y.max() * (1 + np.linspace(0, 1, y.shape[1]))[None, :]   # a haze for b to take
+    w1 = rng.uniform(0.5, 2.0, y.shape)
+    w2 = (rng.random(y.shape) > 0.2) * rng.uniform(0.2, 3.0, y.shape)
+    kw = dict(l1=1e-3, tv=0.0, max_iter=25, tol=0, background="model", psf_refine=0)
+
+    def solver():
+        return ADMMSolver(psf, ADMMParams(**kw), dtype=np.float64, backend="cl", padded_shape=P)
+
+    reused = solver()
+    first = reused.solve(y, weights=w1).volume_padded
+    again = reused.solve(y, weights=w2).volume_padded
+    fresh = solver().solve(y, weights=w2).volume_padded
+    np.testing.assert_array_equal(again, fresh)
+    twin = ref.admm(y, psf, weights=w2, padded_shape=P, **{k: v for k, v in kw.items() if k != "psf_refine"})
+    err = np.linalg.norm(again - twin.volume_padded) / np.linalg.norm(twin.volume_padded)
+    assert err < 1e-8, err   # the background's twin tolerance (tests/test_terms.py): its NNLS solves differ in rounding
+    assert np.linalg.norm(first - again) > 1e-3 * np.linalg.norm(again)     # the two weightings differ

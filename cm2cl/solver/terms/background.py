@@ -126,7 +126,7 @@ class LeastSquaresBackground(LeastSquares):
         slowly: 513 against 324 iterations to the stopping rule on DiffuserCam 3D binned 4x, 11 planes.) A warm
         start thus depends on the stored x0 alone, and a resumed job gives the same bits."""
         super().start(s, ctl)
-        self._q = None   # a new solve may bring new pixel weights
+        self._q = self.fit._normal = None   # a new solve may bring new pixel weights (Q and B^T Q B follow them)
         self._change = (0.0, 0.0)
         self.fit.c[...] = 0.0
         self._b = self.fit.plane()
