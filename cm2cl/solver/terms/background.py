@@ -88,6 +88,11 @@ class Background:
     def plane(self) -> np.ndarray:
         return self.By @ self.c @ self.Bx.T
 
+    def reset(self) -> None:
+        """b = 0, and no normal matrix kept: the next fit's weights may be new (a new solve)."""
+        self.c[...] = 0.0
+        self._normal = None
+
 
 class LeastSquaresBackground(LeastSquares):
     """1/2 ||W^(1/2) (C H x + b - y)||^2 with b = B c >= 0 estimated jointly (module docstring)."""
@@ -126,9 +131,9 @@ class LeastSquaresBackground(LeastSquares):
         slowly: 513 against 324 iterations to the stopping rule on DiffuserCam 3D binned 4x, 11 planes.) A warm
         start thus depends on the stored x0 alone, and a resumed job gives the same bits."""
         super().start(s, ctl)
-        self._q = self.fit._normal = None   # a new solve may bring new pixel weights (Q and B^T Q B follow them)
+        self._q = None   # a new solve may bring new pixel weights (Q and B^T Q B follow them)
         self._change = (0.0, 0.0)
-        self.fit.c[...] = 0.0
+        self.fit.reset()
         self._b = self.fit.plane()
         self._set_target(s, self._b)
 
