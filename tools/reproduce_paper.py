@@ -2,27 +2,27 @@
 measure on its optics model, measured with the same functions the ``cm2cl analyze`` commands use, written to
 docs/paper_comparison.md with the function that made it and, where the two differ by more than 15%, why.
 
-    python tools/reproduce_paper.py [--full] [--pinhole-bin N] [--out docs/paper_comparison.md]
+    python tools/reproduce_paper.py [--full] [--pinhole-bin N] [--bead-bin N] [--out docs/paper_comparison.md]
 
 Default (small): the model's array PSF on a 1400 x 1400 window of full-resolution pixels around the axis,
 depths -300..300 um every 20 um; the pinholes and the PCC map on a 4x binned sensor (about 6 min on 2 cores).
 ``--full``: every 10 um over -600..600 um (the PCC widths and the MTF's axial resolution twice as fine), the
 PCC map every 0.2 mm and the pinholes every 0.5 mm on a 2x binned sensor with 10-um planes (hours).
-``--pinhole-bin N``: the pinholes' sensor binned N x instead (1: the paper's unbinned 5.3-um object pixels,
-which the lateral FWHM needs; about an hour here).
+``--pinhole-bin N``, ``--bead-bin N``: the pinholes' or the 10-um beads' sensor binned N x instead (1: the
+paper's unbinned 5.3-um object pixels, which the lateral FWHM needs; about an hour here).
 
 What it measures: Eq. 1 (foci separation, from the foci found in the simulated PSF at three depths), Eq. 2
 (the geometric axial resolution from the measured shear of the side foci), the in-focus lateral spot FWHM,
 the axial PCC widths per view configuration (``cm2cl analyze pcc``), the 3D MTF's lateral cutoff and
 axial bandwidth at the paper's cutoff and the 3D SBP from them (``cm2cl analyze mtf``), and the field of
 view seen by >= 4 views within the pixels' 21-degree angular cutoff, the FWHM of reconstructed pinholes by
-view region (Fig. 2D's procedure on the model, :func:`pinholes`), and the lateral PCC map of a pinhole
+view region (Fig. 2D's procedure on the model, :func:`pinholes`) and of 10-um beads through 1 mm of depth
+(Fig. 3E, :func:`beads`), and the lateral PCC map of a pinhole
 scanned over the 8 x 7 mm field at z = 0 with the scene effects that make the model shift-variant (the
 21-degree cutoff and the field aberrations of the ``aberration`` effect, on a 4x binned sensor; ``cm2cl
 analyze pcc-map``): mean PCC per view region, and the diameter over which the central lenslet's PCC
-exceeds 0.7 (Fig. 2C, S4C; the map goes to docs/img/paper_pcc_map.png). What it does not yet measure (10-um
-bead FWHM by region on reconstructions, the SBR trend with scattering, the depth range) is listed with the
-command that measures it on a user's own data.
+exceeds 0.7 (Fig. 2C, S4C; the map goes to docs/img/paper_pcc_map.png). What it does not yet measure (the SBR
+trend with scattering, the depth range) is listed with the command that measures it on a user's own data.
 """
 
 from __future__ import annotations
@@ -112,46 +112,83 @@ def pinholes(full: bool, log=print, binning: int | None = None) -> dict:
     (``cm2cl analyze particles``), grouped by the view region of its pinhole. Default: 4x binned sensor,
     pinholes every 1 mm, depths -300..300 um every 20 um; ``--full``: 2x binned, every 0.5 mm, every 10 um;
     ``binning`` overrides the sensor's binning."""
-    import cm2cl
-    from cm2cl.analysis.lateral import region_names
-    from cm2cl.analysis.particles import particle_table, summary
-
     o = CM2Optics(binning=binning if binning else (2 if full else 4))
     step_mm, dz = (0.5, 10.0) if full else (1.0, 20.0)
     xs = np.round(np.arange(-4.0, 4.0 + 1e-9, step_mm), 6)
     ys = np.round(np.arange(-3.5, 3.5 + 1e-9, step_mm), 6)
+    return _reconstructed_sources(o, xs, ys, np.zeros((ys.size, xs.size)), 5.0, depth_planes(-300.0, 300.0, dz),
+                                  "pinholes", log, depth_window_um=None)
+
+
+#: the paper's reconstructed 10-um beads by view region (Fig. 3E, Results): lateral and axial FWHM, um
+PAPER_BEADS = {"central": (11.0, 246.0), "outer": (11.1, 292.0), "corner": (12.3, 299.0)}
+#: the depths the model's 10-um beads take in turn over the grid (the paper's beads fill 1 mm in depth)
+BEAD_DEPTHS_UM = (-400.0, -200.0, 0.0, 200.0, 400.0)
+
+
+def beads(full: bool, log=print, binning: int | None = None) -> dict:
+    """Fig. 3E's measurement on the model: 10-um beads over the 8 x 7 mm field (every 1 mm, every 0.5 mm with
+    ``--full``), one per grid position, their depths taking the values of :data:`BEAD_DEPTHS_UM` in turn
+    (the paper's beads fill 1 mm in depth), imaged with the same shift-variant effects as the pinholes
+    (:func:`pinholes`) into one frame with Poisson noise, reconstructed with the on-axis PSF stack over
+    -600..600 um (20-um planes, 10 with ``--full``) at cm2cl's defaults; FWHM of every bead's particle by a 3D
+    Gaussian fit, grouped by the view region of its lateral position (at z = 0, as Fig. 2C draws them)."""
+    o = CM2Optics(binning=binning if binning else (2 if full else 4))
+    step_mm, dz = (0.5, 10.0) if full else (1.0, 20.0)
+    xs = np.round(np.arange(-4.0, 4.0 + 1e-9, step_mm), 6)
+    ys = np.round(np.arange(-3.5, 3.5 + 1e-9, step_mm), 6)
+    depth = np.array(BEAD_DEPTHS_UM)[np.arange(ys.size * xs.size) % len(BEAD_DEPTHS_UM)].reshape(ys.size, xs.size)
+    return _reconstructed_sources(o, xs, ys, depth, 10.0, depth_planes(-600.0, 600.0, dz), "10-um beads", log,
+                                  depth_window_um=150.0)
+
+
+def _reconstructed_sources(o: CM2Optics, xs, ys, depth_um, diameter_um: float, z, what: str, log=print,
+                           depth_window_um: float | None = None) -> dict:
+    """Spheres of ``diameter_um`` at the grid positions (ys x xs mm) and depths ``depth_um`` (ys.size, xs.size),
+    imaged with the shift-variant effects (21-deg cutoff, field aberrations) into one frame with Poisson noise
+    (3000 photons at its peak), reconstructed on the planes ``z`` with the on-axis PSF stack at the defaults;
+    per source the brightest particle within a third of the grid step laterally (and ``depth_window_um`` of its
+    depth, when given: its lateral position then maps back to the object at the particle's depth), its 3D
+    Gaussian FWHM (``cm2cl analyze particles``), summarised by the view region of its lateral position."""
+    import cm2cl
+    from cm2cl.analysis.lateral import region_names
+    from cm2cl.analysis.particles import particle_table, summary
+
+    step_mm = float(xs[1] - xs[0])
     ab = Aberration()
     t = time.perf_counter()
     y = np.zeros(o.shape)
-    for yy in ys:
-        for xx in xs:
-            array_psf(o, 0.0, xx, yy, cutoff_deg=21.0, aberration=ab, bead_diameter_um=5.0, out=y)
+    for i, yy in enumerate(ys):
+        for j, xx in enumerate(xs):
+            array_psf(o, float(depth_um[i, j]), xx, yy, cutoff_deg=21.0, aberration=ab,
+                      bead_diameter_um=diameter_um, out=y)
     rng = np.random.default_rng(2)
     y = rng.poisson(y * (3000.0 / y.max())).astype(np.float64)
-    z = depth_planes(-300.0, 300.0, dz)
+    dz = float(z[1] - z[0])
     psf = axial_psf_stack(o, z, cutoff_deg=21.0, aberration=ab)
     px = float(o.object_pixel_um(0.0))
     rec = cm2cl.reconstruct(y, psf, voxel_size_um=(dz, px, px), depths_um=z, padding="support")
     rows = particle_table(rec.volume, (dz, px, px), z)
-    # each particle belongs to the pinhole nearest its object position, and so to that pinhole's view region
+    # each particle belongs to the source nearest its object position, and so to that source's view region
     views = np.array([[view_count(o, 0.0, xx, yy, cutoff_deg=21.0) for xx in xs] for yy in ys])
     regions = region_names(views, *o.lenses)
-    best = {}          # per pinhole, the brightest particle within a third of the grid step (the paper's profile)
+    best = {}          # per source, its brightest particle (the paper's profile)
     for r in rows:
-        x_mm, y_mm = o.sensor_to_object_mm(r["y"], r["x"], 0.0)
+        x_mm, y_mm = o.sensor_to_object_mm(r["y"], r["x"], float(r["z_um"]) if depth_window_um else 0.0)
         i, j = int(np.argmin(np.abs(ys - y_mm))), int(np.argmin(np.abs(xs - x_mm)))
         if abs(ys[i] - y_mm) < step_mm / 3 and abs(xs[j] - x_mm) < step_mm / 3 and \
+                (depth_window_um is None or abs(float(r["z_um"]) - depth_um[i, j]) <= depth_window_um) and \
                 ((i, j) not in best or r["amplitude"] > best[(i, j)]["amplitude"]):
             best[(i, j)] = {**r, "region": str(regions[i, j])}
     s = summary(list(best.values()), key=lambda r: r["region"])
-    log(f"pinholes: {ys.size} x {xs.size} on a {o.shape} sensor, {z.size} planes, {rec.iterations} iterations, "
-        f"{len(rows)} particles, {len(best)} pinholes found, in {time.perf_counter() - t:.0f} s")
-    return {"summary": s, "pinholes": int(ys.size * xs.size), "found": len(best), "particles": len(rows),
-            "binning": o.binning,
-            "iterations": rec.iterations, "object_pixel_um": px, "dz_um": dz, "step_mm": step_mm, "shape": o.shape}
+    log(f"{what}: {ys.size} x {xs.size} on a {o.shape} sensor, {z.size} planes, {rec.iterations} iterations, "
+        f"{len(rows)} particles, {len(best)} found, in {time.perf_counter() - t:.0f} s")
+    return {"summary": s, "sources": int(ys.size * xs.size), "found": len(best), "particles": len(rows),
+            "binning": o.binning, "iterations": rec.iterations, "object_pixel_um": px, "dz_um": dz,
+            "step_mm": step_mm, "shape": o.shape}
 
 
-def measure(full: bool, log=print, pinhole_bin: int | None = None) -> tuple[list, dict]:
+def measure(full: bool, log=print, pinhole_bin: int | None = None, bead_bin: int | None = None) -> tuple[list, dict]:
     t0 = time.perf_counter()
     o = CM2Optics(sensor_shape=(1400, 1400))
     step, half = (10.0, 600.0) if full else (20.0, 300.0)
@@ -190,9 +227,10 @@ def measure(full: bool, log=print, pinhole_bin: int | None = None) -> tuple[list
     stack = axial_psf_stack(o, z)
     log(f"axial stack {stack.shape} in {time.perf_counter() - t:.0f} s")
     pc = pcc_curves(stack, z, ref_index=int(np.argmin(np.abs(z))))
-    why_pcc = ("the model's spots are near the diffraction limit at every depth; what widens the measured "
-               "curves (the 5-um pinhole, sensor crosstalk, field aberrations, the scan's sampling) is not in it "
-               "(docs/optics_fit.md)")
+    why_pcc = ("the model's spots are near the diffraction limit at every depth. Blurring them on the sensor "
+               "(sigma ~1 px, all or most of the light) brings the three widths within 15% of the paper's, but then "
+               "the MTF has no support left at f_x = 0.0715 / um, where the paper measures its axial bandwidth: "
+               "none of the blurs tried meets both of the paper's measurements (docs/optics_fit.md)")
     for name in ("3x3", "2x3", "2x2"):
         w = pc["widths_um"].get(name)
         row(f"axial PCC width at 0.8, {name} views", PAPER[f"pcc_{name}"], w,
@@ -244,35 +282,51 @@ def measure(full: bool, log=print, pinhole_bin: int | None = None) -> tuple[list
             row(f"mean lateral PCC with the on-axis PSF, {name} region ({regions[name]['positions']} positions)", None,
                 regions[name]["pcc_mean"], how_map + "; the paper shows the map, not its means", "", fmt=".2f")
     ph = pinholes(full, log, pinhole_bin)
-    how_ph = (f"`cm2cl analyze particles` on a reconstruction of {ph['pinholes']} model pinholes ({ph['found']} "
-              f"found; 5 um, z = 0, every {ph['step_mm']:g} mm over 8 x 7 mm, shift-variant effects on, {ph['shape'][0]} x {ph['shape'][1]} "
-              f"sensor ({'unbinned' if ph['binning'] == 1 else str(ph['binning']) + 'x binned'}, {ph['object_pixel_um']:.2f}-um "
-              f"object pixels), {ph['dz_um']:g}-um planes, {ph['iterations']} iterations) with the on-axis PSF stack at the defaults; median over the "
-              "region's fitted particles")
-    reg = ph["summary"].get("regions", {})
-    for name, (lat, ax) in PAPER_PINHOLES.items():
-        r = reg.get(name) or {}
-        a = (r.get("fwhm_axial_um") or {}).get("median")
-        row(f"axial FWHM of reconstructed pinholes, {name} region ({r.get('n_fit', 0)} fitted)", ax, a, how_ph, "um",
-            why="" if a is not None and abs(a / ax - 1) <= 0.15 else
-            "the model's axial PCC widths are 0.4 of the paper's (the rows above): what widens the measured PSF in "
-            "depth is not modelled. Off the centre the model's profiles are narrower, not wider as in the paper; a "
-            "likely cause, not checked: a pinhole there keeps 6/9 or 4/9 of its light, and l1's soft threshold cuts "
-            "more of its weaker axial tails")
-        l_ = (r.get("fwhm_lateral_um") or {}).get("median")
-        row(f"lateral FWHM of reconstructed pinholes, {name} region", lat, l_, how_ph, "um",
-            why="" if l_ is not None and abs(l_ / lat - 1) <= 0.15 else
-            (f"the reconstructed pinhole is narrower than one of the binned grid's {ph['object_pixel_um']:.1f}-um "
-             "object pixels, so the fit gives its smallest width; the paper's 5.3-um pixels need the unbinned sensor "
-             "(`--pinhole-bin 1`, about an hour here)" if ph["binning"] > 1 else
-             "not explained yet: measured on the unbinned grid, where the pixel no longer bounds the fit"))
+    why_axial = ("the model's axial PCC widths are 0.4 of the paper's (the rows above): what widens the measured PSF "
+                 "in depth is not modelled (docs/optics_fit.md: the blurs of the spots that widen it remove the "
+                 "axial bandwidth of the paper's MTF). Off the centre the model's profiles are narrower, not "
+                 "wider as in the paper; a likely cause, not checked: a source there keeps 6/9 or 4/9 of its light, "
+                 "and l1's soft threshold cuts more of its weaker axial tails")
+    _fwhm_rows(row, ph, PAPER_PINHOLES, "pinholes", "5 um, z = 0", why_axial, "--pinhole-bin")
+    bd = beads(full, log, bead_bin)
+    _fwhm_rows(row, bd, PAPER_BEADS, "10-um beads",
+               "10 um, at " + " / ".join(f"{v:+.0f}" for v in BEAD_DEPTHS_UM) + " um in turn", why_axial, "--bead-bin")
     info = {"seconds": time.perf_counter() - t0, "step": step, "half": half, "pcc_order": order,
             "floor": m["floor"], "nyquist": nyq, "pcc_map": lm, "pcc_regions": regions}
     return rows, info
 
 
+def _fwhm_rows(row, res: dict, paper: dict, what: str, sources: str, why_axial: str, bin_flag: str) -> None:
+    """The rows of the median axial and lateral FWHM by view region of reconstructed sources (:func:`pinholes`,
+    :func:`beads`) beside the paper's ``paper`` {region: (lateral, axial)}."""
+    binned = "unbinned" if res["binning"] == 1 else f"{res['binning']}x binned"
+    how = (f"`cm2cl analyze particles` on a reconstruction of {res['sources']} model {what} ({res['found']} found; "
+           f"{sources}, every {res['step_mm']:g} mm over 8 x 7 mm, shift-variant effects on, {res['shape'][0]} x "
+           f"{res['shape'][1]} sensor ({binned}, {res['object_pixel_um']:.2f}-um object pixels), {res['dz_um']:g}-um "
+           f"planes, {res['iterations']} iterations) with the on-axis PSF stack at the defaults; median over the "
+           "region's fitted particles")
+    reg = res["summary"].get("regions", {})
+    for name, (lat, ax) in paper.items():
+        r = reg.get(name) or {}
+        a = (r.get("fwhm_axial_um") or {}).get("median")
+        row(f"axial FWHM of reconstructed {what}, {name} region ({r.get('n_fit', 0)} fitted)", ax, a, how, "um",
+            why="" if a is not None and abs(a / ax - 1) <= 0.15 else why_axial)
+        l_ = (r.get("fwhm_lateral_um") or {}).get("median")
+        if l_ is not None and abs(l_ / lat - 1) <= 0.15:
+            why = ""
+        elif res["binning"] > 1:
+            why = (f"one of the binned grid's {res['object_pixel_um']:.1f}-um object pixels is wider than the "
+                   f"paper's profile, so the fit cannot resolve it; the paper's 5.3-um pixels need the unbinned "
+                   f"sensor (`{bin_flag} 1`, about an hour here)")
+        elif l_ is not None and l_ < lat:
+            why = ("narrower than the paper's: the model's sources sit on the reconstruction's own PSF (one PSF "
+                   "model for the frame and the stack, no calibration error), and l1 sharpens them")
+        else:
+            why = "not explained yet: measured on the unbinned grid, where the pixel no longer bounds the fit"
+        row(f"lateral FWHM of reconstructed {what}, {name} region", lat, l_, how, "um", why=why)
+
+
 NOT_YET = [
-    ("10-um beads, lateral and axial FWHM", "~11 um; 246 / 292 / 299 um", "`cm2cl analyze particles`"),
     ("local SBR against scattering (Fig. 5B)", "falls with scattering, rises with fewer views",
      "`cm2cl analyze sbr` on each raw frame"),
     ("reconstructed depth range (Fig. 5B)", "falls with SBR, plateaus near 372 um", "`cm2cl analyze depth-range`"),
@@ -302,7 +356,7 @@ def write_md(rows, info, path: Path, argv) -> None:
               f"{'yes' if None not in o and o[0] < o[1] < o[2] else 'no'} ({', '.join(fmt(v, '.0f') for v in o)} um). "
               f"The MTF's support floor: {info['floor']['used']:.3g} of DC (noise floor {info['floor']['noise']:.2g}).",
               "", "## Not measured here yet", "",
-              "These need reconstructions of simulated 10-um beads and scattering phantoms at the paper's grid "
+              "These need reconstructions of simulated scattering phantoms at the paper's grid "
               "(hours on this machine); the commands measure them on a user's own data.", "",
               "| quantity | paper | command |", "|---|---|---|"]
     lines += [f"| {a} | {b} | {c} |" for a, b, c in NOT_YET]
@@ -331,13 +385,18 @@ def main(argv=None) -> int:
     ap.add_argument("--full", action="store_true", help="10-um steps over -600..600 um (default 20 over -300..300)")
     ap.add_argument("--pinhole-bin", type=int, default=None,
                     help="the pinholes' sensor binning (default 4, 2 with --full; 1: unbinned, the paper's pixels)")
+    ap.add_argument("--bead-bin", type=int, default=None,
+                    help="the 10-um beads' sensor binning (default 4, 2 with --full; 1: unbinned)")
     ap.add_argument("--out", type=Path, default=ROOT / "docs" / "paper_comparison.md")
     args = ap.parse_args(argv)
-    if args.pinhole_bin is not None and args.pinhole_bin < 1:
-        ap.error(f"--pinhole-bin: must be >= 1, got {args.pinhole_bin}")
-    rows, info = measure(args.full, pinhole_bin=args.pinhole_bin)
+    for flag in ("pinhole_bin", "bead_bin"):
+        v = getattr(args, flag)
+        if v is not None and v < 1:
+            ap.error(f"--{flag.replace('_', '-')}: must be >= 1, got {v}")
+    rows, info = measure(args.full, pinhole_bin=args.pinhole_bin, bead_bin=args.bead_bin)
     write_md(rows, info, args.out, (["--full"] if args.full else [])
-             + ([f"--pinhole-bin {args.pinhole_bin}"] if args.pinhole_bin is not None else []))
+             + ([f"--pinhole-bin {args.pinhole_bin}"] if args.pinhole_bin is not None else [])
+             + ([f"--bead-bin {args.bead_bin}"] if args.bead_bin is not None else []))
     print(f"wrote {args.out} ({info['seconds']:.0f} s)")
     return 0
 
