@@ -77,3 +77,28 @@ def test_bench_fullframe_cli_mode_runs_tiny(rt, tmp_path):
     rss = float(text.split("| peak RSS of the command (wait4 ru_maxrss) | ")[1].split(" GiB")[0])
     assert 0.05 < rss < 4.0
     assert list(tmp_path.iterdir()) == [out]    # the inputs and the volume went with their scratch folder
+
+
+def test_fit_optics_blur_section_says_which_paper_measurements_a_blur_meets():
+    """The blur scan's verdict follows its numbers: a blur within 15% of the paper's PCC widths but without
+    its MTF's axial bandwidth is reported as such; one that meets both is reported as meeting both; bad
+    --blur items are refused with the item named."""
+    import pytest
+
+    import fit_optics as F
+
+    def r(sigma, f, w, support, bz):
+        return {"sigma": sigma, "fraction": f, "3x3": w[0], "2x3": w[1], "2x2": w[2], "support": support, "bz": bz}
+
+    sharp = r(0, 1.0, (62, 65, 70), 0.0946, 0.0197)
+    wide = r(1.0, 1.0, (139, 162, 222), 0.0618, 0.0)
+    text = "\n".join(F.blur_section([sharp, wide], 0.61, 10.0))
+    assert "1 of the blurs bring all three PCC widths within 15%" in text and "0.0000 / um" in text
+    assert "| **139** | **162** | **222** |" in text and "| 62 | 65 | 70 |" in text
+    both = r(1.2, 0.9, (150, 180, 200), 0.1, 0.014)
+    assert "1 of the blurs meet the paper's PCC widths and its MTF together" in "\n".join(F.blur_section([both], 0.61, 10.0))
+    assert "None of the blurs" in "\n".join(F.blur_section([sharp], 0.61, 10.0))
+    assert F._parse_blurs("0, 1.5:0.84") == [(0.0, 1.0), (1.5, 0.84)]
+    for bad in ("x", "1:2", "-1"):
+        with pytest.raises(ValueError, match="--blur"):
+            F._parse_blurs(bad)

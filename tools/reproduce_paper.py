@@ -9,7 +9,7 @@ depths -300..300 um every 20 um; the pinholes and the PCC map on a 4x binned sen
 ``--full``: every 10 um over -600..600 um (the PCC widths and the MTF's axial resolution twice as fine), the
 PCC map every 0.2 mm and the pinholes every 0.5 mm on a 2x binned sensor with 10-um planes (hours).
 ``--pinhole-bin N``, ``--bead-bin N``: the pinholes' or the 10-um beads' sensor binned N x instead (1: the
-paper's unbinned 5.3-um object pixels, which the lateral FWHM needs; about an hour here).
+paper's unbinned 5.3-um object pixels, which the lateral FWHM needs; 70 min and 13 GB here for the pinholes).
 
 What it measures: Eq. 1 (foci separation, from the foci found in the simulated PSF at three depths), Eq. 2
 (the geometric axial resolution from the measured shear of the side foci), the in-focus lateral spot FWHM,
@@ -317,7 +317,7 @@ def _fwhm_rows(row, res: dict, paper: dict, what: str, sources: str, why_axial: 
         elif res["binning"] > 1:
             why = (f"one of the binned grid's {res['object_pixel_um']:.1f}-um object pixels is wider than the "
                    f"paper's profile, so the fit cannot resolve it; the paper's 5.3-um pixels need the unbinned "
-                   f"sensor (`{bin_flag} 1`, about an hour here)")
+                   f"sensor (`{bin_flag} 1`, over an hour here)")
         elif l_ is not None and l_ < lat:
             why = ("narrower than the paper's: the model's sources sit on the reconstruction's own PSF (one PSF "
                    "model for the frame and the stack, no calibration error), and l1 sharpens them")
