@@ -5,7 +5,8 @@ docs/paper_comparison.md with the function that made it and, where the two diffe
     python tools/reproduce_paper.py [--full] [--pinhole-bin N] [--bead-bin N] [--out docs/paper_comparison.md]
 
 Default (small): the model's array PSF on a 1400 x 1400 window of full-resolution pixels around the axis,
-depths -300..300 um every 20 um; the pinholes and the PCC map on a 4x binned sensor (about 6 min on 2 cores).
+depths -300..300 um every 20 um; the pinholes, the 10-um beads and the PCC map on a 4x binned sensor (10-14 min
+on 2 cores).
 ``--full``: every 10 um over -600..600 um (the PCC widths and the MTF's axial resolution twice as fine), the
 PCC map every 0.2 mm and the pinholes every 0.5 mm on a 2x binned sensor with 10-um planes (hours).
 ``--pinhole-bin N``, ``--bead-bin N``: the pinholes' or the 10-um beads' sensor binned N x instead (1: the
@@ -229,7 +230,7 @@ def measure(full: bool, log=print, pinhole_bin: int | None = None, bead_bin: int
     pc = pcc_curves(stack, z, ref_index=int(np.argmin(np.abs(z))))
     why_pcc = ("the model's spots are near the diffraction limit at every depth. Blurring them on the sensor "
                "(sigma ~1 px, all or most of the light) brings the three widths within 15% of the paper's, but then "
-               "the MTF has no support left at f_x = 0.0715 / um, where the paper measures its axial bandwidth: "
+               "the MTF has no axial bandwidth left at f_x = 0.0715 / um, where the paper measures 0.0143 / um: "
                "none of the blurs tried meets both of the paper's measurements (docs/optics_fit.md)")
     for name in ("3x3", "2x3", "2x2"):
         w = pc["widths_um"].get(name)
