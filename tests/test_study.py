@@ -99,6 +99,6 @@ def test_fit_optics_blur_section_says_which_paper_measurements_a_blur_meets():
     assert "1 of the blurs meet the paper's PCC widths and its MTF together" in "\n".join(F.blur_section([both], 0.61, 10.0))
     assert "None of the blurs" in "\n".join(F.blur_section([sharp], 0.61, 10.0))
     assert F._parse_blurs("0, 1.5:0.84") == [(0.0, 1.0), (1.5, 0.84)]
-    for bad in ("x", "1:2", "-1"):
+    for bad in ("x", "1:2", "-1", "nan", "1:nan"):
         with pytest.raises(ValueError, match="--blur"):
             F._parse_blurs(bad)

@@ -96,8 +96,8 @@ def _parse_blurs(text: str) -> list[tuple[float, float]]:
             sigma, f = float(sig), float(frac) if frac else 1.0
         except ValueError:
             raise ValueError(f"--blur: {item!r} is not SIGMA[:FRACTION] (numbers)") from None
-        if sigma < 0 or not 0 <= f <= 1:
-            raise ValueError(f"--blur: {item!r} needs sigma >= 0 and a fraction in 0..1")
+        if not (np.isfinite(sigma) and sigma >= 0) or not 0 <= f <= 1:
+            raise ValueError(f"--blur: {item!r} needs a finite sigma >= 0 and a fraction in 0..1")
         out.append((sigma, f))
     return out
 
