@@ -201,14 +201,12 @@ def sbr_trend(log=print, patch_um: float = 500.0) -> dict:
     on 500 x 500 um patches with the automatic particle masks (``cm2cl analyze sbr``); the mean over all
     patches and per view region (each patch by the object position its centre images through the central
     lens, at z = 0)."""
-    import tomllib
-
     from cm2cl.analysis.lateral import region_names
-    from cm2cl.analysis.metrics import local_sbr, particle_mask
+    from cm2cl.analysis.metrics import raw_sbr
     from cm2cl.simulate import load_scene, simulate_scene
-    from cm2cl.simulate.scene import resolve_scene
+    from paper_scenes import scene_at
 
-    base = tomllib.loads(resolve_scene("fig5_scattering").read_text(encoding="utf-8"))
+    base = scene_at("fig5_scattering", None)
     out = {}
     for ls in PAPER_SBR:
         t = time.perf_counter()
@@ -218,7 +216,7 @@ def sbr_trend(log=print, patch_um: float = 500.0) -> dict:
         sim = simulate_scene(scene)
         img = np.asarray(sim.measurement, np.float64)
         n = int(round(patch_um / float(sim.voxel_size_um[-1])))
-        sbr_map, mean = local_sbr(img, particle_mask(img, n), n)
+        sbr_map, mean, _ = raw_sbr(img, n)
         o = scene.optics
         cy, cx = (np.arange(sbr_map.shape[0]) + 0.5) * n, (np.arange(sbr_map.shape[1]) + 0.5) * n
         views = np.array([[view_count(o, 0.0, *o.sensor_to_object_mm(r, c), cutoff_deg=21.0) for c in cx]

@@ -14,7 +14,7 @@ from scipy import ndimage
 
 from ..errors import InputError
 
-__all__ = ["register_shift", "pcc", "axial_pcc", "width_at_level", "fwhm", "local_sbr", "signal_mask", "particle_mask", "PARTICLE_SIGMAS"]
+__all__ = ["register_shift", "pcc", "axial_pcc", "width_at_level", "fwhm", "local_sbr", "signal_mask", "particle_mask", "raw_sbr", "PARTICLE_SIGMAS"]
 
 
 def _as_image(a, name):
@@ -191,3 +191,11 @@ def local_sbr(image, mask, patch_px: int, min_pixels: int = 4):
                     out[i, j] = v[m].mean() / bg
     finite = out[np.isfinite(out)]
     return out, (float(finite.mean()) if finite.size else float("nan"))
+
+
+def raw_sbr(image, patch_px: int, sigmas: float = PARTICLE_SIGMAS):
+    """Fig. 5B's local SBR of a raw measurement with its automatic masks (``cm2cl analyze sbr``):
+    :func:`particle_mask` then :func:`local_sbr` on ``patch_px`` patches. Returns (sbr_map, mean, mask)."""
+    mask = particle_mask(image, patch_px, sigmas)
+    sbr_map, mean = local_sbr(image, mask, patch_px)
+    return sbr_map, mean, mask

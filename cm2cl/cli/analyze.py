@@ -403,7 +403,7 @@ def _particles(args, vol, meta) -> dict:
 
 
 def _sbr(args, img, meta) -> dict:
-    from ..analysis.metrics import local_sbr, particle_mask
+    from ..analysis.metrics import raw_sbr
 
     if args.sigmas <= 0:
         raise InputError(f"--sigmas: {args.sigmas} must be positive")
@@ -420,8 +420,7 @@ def _sbr(args, img, meta) -> dict:
     if n < 2 or n > min(img.shape):
         raise InputError(f"patch of {n} px: must be 2 px to the image's {min(img.shape)} px")
     img = np.asarray(img, np.float64)
-    mask = particle_mask(img, n, args.sigmas)
-    sbr_map, mean = local_sbr(img, mask, n)
+    sbr_map, mean, mask = raw_sbr(img, n, args.sigmas)
     rows = [[i, j, i * n, j * n, None if not np.isfinite(v) else float(v)]
             for i in range(sbr_map.shape[0]) for j in range(sbr_map.shape[1]) for v in [sbr_map[i, j]]]
     finite = sbr_map[np.isfinite(sbr_map)]
