@@ -149,12 +149,13 @@ def _reconstructed_sources(o: CM2Optics, xs, ys, depth_um, diameter_um: float, z
     """Spheres of ``diameter_um`` at the grid positions (ys x xs mm) and depths ``depth_um`` (ys.size, xs.size),
     imaged with the shift-variant effects (21-deg cutoff, field aberrations) into one frame with Poisson noise
     (3000 photons at its peak), reconstructed on the planes ``z`` with the on-axis PSF stack at the defaults;
-    per source the brightest particle within a third of the grid step laterally (and ``depth_window_um`` of its
-    depth, when given: its lateral position then maps back to the object at the particle's depth), its 3D
-    Gaussian FWHM (``cm2cl analyze particles``), summarised by the view region of its lateral position."""
+    per source the brightest voxel within a third of the grid step of its image (all planes, or
+    ``depth_window_um`` of its depth when given), a particle where it is above the volume's noise floor
+    (whatever the other sources' brightness: the paper reconstructs each pinhole's measurement on its own), its
+    3D Gaussian FWHM (the fit of ``cm2cl analyze particles``), summarised by the view region of the source."""
     import cm2cl
     from cm2cl.analysis.lateral import region_names
-    from cm2cl.analysis.particles import particle_table, summary
+    from cm2cl.analysis.particles import measure_particle, noise_floor, summary
 
     step_mm = float(xs[1] - xs[0])
     ab = Aberration()
@@ -170,22 +171,33 @@ def _reconstructed_sources(o: CM2Optics, xs, ys, depth_um, diameter_um: float, z
     psf = axial_psf_stack(o, z, cutoff_deg=21.0, aberration=ab)
     px = float(o.object_pixel_um(0.0))
     rec = cm2cl.reconstruct(y, psf, voxel_size_um=(dz, px, px), depths_um=z, padding="support")
-    rows = particle_table(rec.volume, (dz, px, px), z)
-    # each particle belongs to the source nearest its object position, and so to that source's view region
+    vol = np.asarray(rec.volume, np.float64)
+    floor = noise_floor(vol)
     views = np.array([[view_count(o, 0.0, xx, yy, cutoff_deg=21.0) for xx in xs] for yy in ys])
     regions = region_names(views, *o.lenses)
-    best = {}          # per source, its brightest particle (the paper's profile)
-    for r in rows:
-        x_mm, y_mm = o.sensor_to_object_mm(r["y"], r["x"], float(r["z_um"]) if depth_window_um else 0.0)
-        i, j = int(np.argmin(np.abs(ys - y_mm))), int(np.argmin(np.abs(xs - x_mm)))
-        if abs(ys[i] - y_mm) < step_mm / 3 and abs(xs[j] - x_mm) < step_mm / 3 and \
-                (depth_window_um is None or abs(float(r["z_um"]) - depth_um[i, j]) <= depth_window_um) and \
-                ((i, j) not in best or r["amplitude"] > best[(i, j)]["amplitude"]):
-            best[(i, j)] = {**r, "region": str(regions[i, j])}
+    # the paper deconvolves each pinhole's measurement on its own, so each is measured whatever the others'
+    # brightness: per source, the brightest voxel within a third of the grid step of its image (and
+    # ``depth_window_um`` of its depth, when given), a particle when above the volume's noise floor, fitted there
+    best = {}
+    for i, yy in enumerate(ys):
+        for j, xx in enumerate(xs):
+            d = float(depth_um[i, j])
+            planes = np.flatnonzero(np.abs(z - d) <= depth_window_um) if depth_window_um else np.arange(z.size)
+            m = float(o.magnification(d)) * 1000.0 / float(o.pixel_size_um)      # sensor px per object mm
+            r0, c0 = o.center_px[0] - yy * m, o.center_px[1] - xx * m
+            h = step_mm / 3.0 * m
+            rs = slice(max(int(math.ceil(r0 - h)), 0), max(int(math.floor(r0 + h)) + 1, 0))
+            cs = slice(max(int(math.ceil(c0 - h)), 0), max(int(math.floor(c0 + h)) + 1, 0))
+            win = vol[planes[0]:planes[-1] + 1, rs, cs] if planes.size else vol[:0]
+            if win.size == 0 or float(win.max()) <= floor:
+                continue
+            k = np.unravel_index(int(np.argmax(win)), win.shape)
+            idx = (planes[0] + k[0], rs.start + k[1], cs.start + k[2])
+            best[(i, j)] = {**measure_particle(vol, idx, (dz, px, px), z), "region": str(regions[i, j])}
     s = summary(list(best.values()), key=lambda r: r["region"])
     log(f"{what}: {ys.size} x {xs.size} on a {o.shape} sensor, {z.size} planes, {rec.iterations} iterations, "
-        f"{len(rows)} particles, {len(best)} found, in {time.perf_counter() - t:.0f} s")
-    return {"summary": s, "sources": int(ys.size * xs.size), "found": len(best), "particles": len(rows),
+        f"{len(best)} found, in {time.perf_counter() - t:.0f} s")
+    return {"summary": s, "sources": int(ys.size * xs.size), "found": len(best),
             "binning": o.binning, "iterations": rec.iterations, "object_pixel_um": px, "dz_um": dz,
             "step_mm": step_mm, "shape": o.shape}
 
@@ -386,9 +398,9 @@ def measure(full: bool, log=print, pinhole_bin: int | None = None, bead_bin: int
     ph = pinholes(full, log, pinhole_bin)
     why_axial = ("the model's axial PCC widths are 0.4 of the paper's (the rows above): what widens the measured PSF "
                  "in depth is not modelled (docs/optics_fit.md: the blurs of the spots that widen it remove the "
-                 "axial bandwidth of the paper's MTF). Off the centre the model's profiles are narrower, not "
-                 "wider as in the paper; a likely cause, not checked: a source there keeps 6/9 or 4/9 of its light, "
-                 "and l1's soft threshold cuts more of its weaker axial tails")
+                 "axial bandwidth of the paper's MTF). In the corner region the model's profiles are narrower than "
+                 "in the centre, not wider as in the paper; a likely cause, not checked: a source there keeps 4/9 of "
+                 "its light, and l1's soft threshold cuts more of its weaker axial tails")
     _fwhm_rows(row, ph, PAPER_PINHOLES, "pinholes", "5 um, z = 0", why_axial, "--pinhole-bin")
     bd = beads(full, log, bead_bin)
     _fwhm_rows(row, bd, PAPER_BEADS, "10-um beads",
@@ -448,7 +460,8 @@ def _fwhm_rows(row, res: dict, paper: dict, what: str, sources: str, why_axial: 
     """The rows of the median axial and lateral FWHM by view region of reconstructed sources (:func:`pinholes`,
     :func:`beads`) beside the paper's ``paper`` {region: (lateral, axial)}."""
     binned = "unbinned" if res["binning"] == 1 else f"{res['binning']}x binned"
-    how = (f"`cm2cl analyze particles` on a reconstruction of {res['sources']} model {what} ({res['found']} found; "
+    how = (f"`cm2cl analyze particles`' fit, per source at its brightest voxel near its image, on a reconstruction "
+           f"of {res['sources']} model {what} ({res['found']} found above the noise floor; "
            f"{sources}, every {res['step_mm']:g} mm over 8 x 7 mm, shift-variant effects on, {res['shape'][0]} x "
            f"{res['shape'][1]} sensor ({binned}, {res['object_pixel_um']:.2f}-um object pixels), {res['dz_um']:g}-um "
            f"planes, {res['iterations']} iterations) with the on-axis PSF stack at the defaults; median over the "

@@ -75,18 +75,22 @@ def particle_table(volume, voxel_size_um=(1.0, 1.0, 1.0), depths_um=None, thresh
         raise InputError(f"voxel_size_um: the lateral fit needs square pixels, got dy {dy} and dx {dx}")
     det = find_emitters(vol, threshold=threshold, min_distance_vox=min_distance_vox)
     floor = noise_floor(vol)
-    rows = []
-    for idx, amp in zip(det["index"], det["amplitude"]):
-        if amp <= floor:          # a noise maximum, not a particle
-            continue
-        f = fit_particle(vol, idx, half_window)
-        z0, y0, x0 = f["center_vox"]
-        zu = float(np.interp(z0, np.arange(vol.shape[0]), depths_um)) if depths_um is not None else z0 * dz
-        rows.append({"z": z0, "y": y0, "x": x0, "z_um": zu, "y_um": y0 * dy, "x_um": x0 * dx,
-                     "fwhm_lateral_um": FWHM_PER_SIGMA * f["sigma_lateral_vox"] * dy,
-                     "fwhm_axial_um": FWHM_PER_SIGMA * f["sigma_axial_vox"] * dz,
-                     "amplitude": f["amplitude"], "rel_residual": f["rel_residual"], "ok": f["ok"]})
-    return rows
+    return [measure_particle(vol, idx, (dz, dy, dx), depths_um, half_window)
+            for idx, amp in zip(det["index"], det["amplitude"]) if amp > floor]   # else a noise maximum
+
+
+def measure_particle(volume, index, voxel_size_um=(1.0, 1.0, 1.0), depths_um=None, half_window=HALF_WINDOW) -> dict:
+    """The row of :func:`particle_table` for the particle at voxel ``index`` of ``volume``: its fitted centre
+    in voxels and um, lateral and axial FWHM in um, amplitude, misfit and whether the fit is ``ok``."""
+    vol = np.asarray(volume, np.float64)
+    dz, dy, dx = (float(v) for v in voxel_size_um)
+    f = fit_particle(vol, index, half_window)
+    z0, y0, x0 = f["center_vox"]
+    zu = float(np.interp(z0, np.arange(vol.shape[0]), depths_um)) if depths_um is not None else z0 * dz
+    return {"z": z0, "y": y0, "x": x0, "z_um": zu, "y_um": y0 * dy, "x_um": x0 * dx,
+            "fwhm_lateral_um": FWHM_PER_SIGMA * f["sigma_lateral_vox"] * dy,
+            "fwhm_axial_um": FWHM_PER_SIGMA * f["sigma_axial_vox"] * dz,
+            "amplitude": f["amplitude"], "rel_residual": f["rel_residual"], "ok": f["ok"]}
 
 
 def summary(rows, key=None) -> dict:
@@ -152,5 +156,5 @@ def depth_range(rows, field_um, patch_um: float = 800.0, elongation_um: float | 
             "elongation_um": float(elongation_um), "elongation_from": source}
 
 
-__all__ = ["FWHM_PER_SIGMA", "HALF_WINDOW", "depth_range", "fit_particle", "noise_floor", "particle_table",
+__all__ = ["FWHM_PER_SIGMA", "HALF_WINDOW", "depth_range", "fit_particle", "measure_particle", "noise_floor", "particle_table",
            "summary"]
