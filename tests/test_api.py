@@ -163,5 +163,9 @@ def test_presets_and_priors_are_parameters():
     p = layered(prior="points", preset="fast", tol=1e-5, l1=None)
     assert p.tv_noise_ratio == 0.0 and p.max_iter == 100 and p.tol == 1e-5 and p.l1 is None
     assert layered() == ADMMParams() and set(PRIORS) == {"default", "points", "points-weighted", "extended"}
+    # extended samples: no kernels per lenslet unless asked for (they trade shifts with extended objects)
+    assert layered(prior="extended").psf_refine == "common" and layered().psf_refine == "auto"
+    assert layered(prior="extended", psf_refine=12).psf_refine == 12
+    assert layered(prior="extended", preset="fast").psf_refine == 0
     with pytest.raises(InputError, match="preset: unknown 'quick'"):
         layered(preset="quick")

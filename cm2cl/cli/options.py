@@ -73,7 +73,8 @@ def add_solver(r) -> None:
                    help="what the sample looks like: 'default' (l1 at the universal threshold of the noise, per "
                         "plane, TV off: best for beads and fibres alike on docs/quality.md's suite); 'points' (the "
                         "same); 'points-weighted': each plane's l1 weight ~ ||h_i||^2; 'extended': TV at 5 x the "
-                        "noise level too, for smooth extended structure. --l1/--tv win")
+                        "noise level too, and the PSF refined by one kernel common to every lenslet (--psf-refine "
+                        "common), for smooth extended structure. --l1/--tv/--psf-refine win")
     tuned = sorted({k for o in PRESETS.values() for k in o})
     g.add_argument("--preset", choices=list(PRESETS), default=None,
                    help="accuracy against time, measured in docs/accuracy_vs_time.md: " + "; ".join(
