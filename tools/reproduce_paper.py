@@ -421,10 +421,10 @@ def measure(full: bool, log=print, pinhole_bin: int | None = None, bead_bin: int
     dt = depth_trend(full, log)
     ph = dt["phantoms"]
     on_phantom = (f"the defaults' reconstruction of the built-in `fig5_scattering` phantom simulated with this l_s "
-                  f"({dt['binning']}x binned sensor, {next(iter(ph.values()))['dz_um']:g}-um planes over 2 mm; scattering "
-                  "not in the model)")
-    how_dr = (f"`cm2cl analyze depth-range` (cm2cl.analysis.particles.depth_range, {dt['patch_um']:g}-um patches tiling "
-              f"the phantom's middle {dt['tiled_mm']:g} x {dt['tiled_mm']:g} mm, one elongation for every phantom) on "
+                  f"({dt['binning']}x binned sensor, {next(iter(ph.values()))['dz_um']:g}-um planes over 2 mm; "
+                  "scattering not in the model)")
+    how_dr = (f"`cm2cl analyze depth-range` (cm2cl.analysis.particles.depth_range, {dt['patch_um']:g}-um patches "
+              f"tiling the phantom's middle {dt['tiled_mm']:g} x {dt['tiled_mm']:g} mm, one elongation for every phantom) on "
               + on_phantom)
     why_el = ("the model's PSF discriminates depth about 2.5x more finely than the paper's device (the PCC rows "
               "above), so a particle's reconstruction is shorter in depth")

@@ -156,5 +156,5 @@ def depth_range(rows, field_um, patch_um: float = 800.0, elongation_um: float | 
             "elongation_um": float(elongation_um), "elongation_from": source}
 
 
-__all__ = ["FWHM_PER_SIGMA", "HALF_WINDOW", "depth_range", "fit_particle", "measure_particle", "noise_floor", "particle_table",
-           "summary"]
+__all__ = ["FWHM_PER_SIGMA", "HALF_WINDOW", "depth_range", "fit_particle", "measure_particle", "noise_floor",
+           "particle_table", "summary"]

@@ -37,8 +37,9 @@ PRESETS = {
 #: 'points' (TV off, every plane's l1 alike: the former prior); 'points-weighted': each plane's l1 weight ~ ||h_i||^2;
 #: 'extended': TV at 5 x the noise level as well, for smooth extended structure, and the PSF refined by one kernel
 #: common to every lenslet: kernels per lenslet trade shifts with extended objects (on fibres with every mismatch,
-#: seeds 1 / 11 / 12, the energy near the truth was 0.26 / 0.16 / 0.12 with 'auto' and 0.41 / 0.38 / 0.38 with
-#: 'common'; where 'auto' does not refine per lenslet the two are the same answer; docs/psf_refine.md)
+#: the suite's seed and seeds 11, 12, the energy near the truth was 0.26 / 0.16 / 0.12 with 'auto' and
+#: 0.41 / 0.38 / 0.38 with 'common'; where 'auto' does not refine per lenslet the two are the same answer;
+#: docs/psf_refine.md)
 PRIORS = {
     "default": {},
     "points": {"tv_noise_ratio": 0.0, "l1_plane_power": 0.0},
