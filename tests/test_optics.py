@@ -223,3 +223,17 @@ def test_axial_stack_shapes_and_depths():
     assert np.all(np.diff(seps) < 0)
     assert seps[0] - seps[-1] == pytest.approx(
         (foci_separation_mm(11.5) - foci_separation_mm(12.5)) * 1000 / 17.6, abs=0.3)
+
+
+def test_object_to_sensor_px_is_the_central_focus_and_inverts_sensor_to_object():
+    """The voxel an object position stands for is where the central lens focuses it (Eq. 1's geometry,
+    foci_px), at any depth and binning, and sensor_to_object_mm maps it back."""
+    rng = np.random.default_rng(3)
+    for o in (CM2Optics(), CM2Optics(binning=4)):
+        centre = int(np.argmin(np.hypot(*o.lens_centers_mm.T)))
+        for _ in range(5):
+            x, y, z = rng.uniform(-3, 3), rng.uniform(-3, 3), rng.uniform(-500, 500)
+            r, c = o.object_to_sensor_px(x, y, z)
+            assert np.allclose([r, c], o.foci_px(z, x, y)[centre], atol=1e-9)
+            xb, yb = o.sensor_to_object_mm(r, c, z)
+            assert np.allclose([xb, yb], [x, y], atol=1e-12)

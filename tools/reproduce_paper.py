@@ -183,9 +183,8 @@ def _reconstructed_sources(o: CM2Optics, xs, ys, depth_um, diameter_um: float, z
         for j, xx in enumerate(xs):
             d = float(depth_um[i, j])
             planes = np.flatnonzero(np.abs(z - d) <= depth_window_um) if depth_window_um else np.arange(z.size)
-            m = float(o.magnification(d)) * 1000.0 / float(o.pixel_size_um)      # sensor px per object mm
-            r0, c0 = o.center_px[0] - yy * m, o.center_px[1] - xx * m
-            h = step_mm / 3.0 * m
+            r0, c0 = (float(v) for v in o.object_to_sensor_px(xx, yy, d))
+            h = step_mm / 3.0 * float(o.magnification(d)) * 1000.0 / float(o.pixel_size_um)   # px
             rs = slice(max(int(math.ceil(r0 - h)), 0), max(int(math.floor(r0 + h)) + 1, 0))
             cs = slice(max(int(math.ceil(c0 - h)), 0), max(int(math.floor(c0 + h)) + 1, 0))
             win = vol[planes[0]:planes[-1] + 1, rs, cs] if planes.size else vol[:0]

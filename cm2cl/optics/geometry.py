@@ -272,6 +272,14 @@ class CM2Optics:
         """(n, 2) geometric foci as fractional (row, col) sensor pixel coordinates."""
         return self.foci_mm(z_um, x_mm, y_mm) * 1000.0 / self.pixel_size_um + np.array(self.center_px, float)
 
+    def object_to_sensor_px(self, x_mm, y_mm, z_um=0.0):
+        """Sensor pixel (row, col) on which the central lens images the object position (x_mm, y_mm) at depth
+        z: the forward model's voxel for it (the inverse of :meth:`sensor_to_object_mm`)."""
+        m = self.magnification(z_um)
+        p = self.pixel_size_um / 1000.0
+        return (self.center_px[0] - np.asarray(y_mm, float) * m / p,
+                self.center_px[1] - np.asarray(x_mm, float) * m / p)
+
     def sensor_to_object_mm(self, row, col, z_um=0.0):
         """Object position (x_mm, y_mm) whose central-lens image falls on sensor pixel (row, col)
         (the position an object voxel of the forward model's grid stands for)."""
