@@ -12,7 +12,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..solver.params import ADMMParams
-from ..solver.psf_refine import OPTIONAL_MODES, explicit_rounds
+from ..solver.psf_refine import EXTENDED_SPOTS, OPTIONAL_MODES, explicit_rounds
 from .inputs import (check_bin, devices_arg, layout_options, offsets, read_psf, single_frame_shape, solver_params,
                      working_psf)
 from .plan import check_headers
@@ -256,6 +256,11 @@ def refine_line(record) -> str:
     test = (f"the lenslets' views {'disagree' if check['refine'] else 'agree'} with the PSF: separate kernels "
             f"explain {check['disagreement']:.3f} of the misfit (threshold {check['threshold']:g}), F "
             f"{check['f_statistic']:.2f} (threshold {check['f_threshold']:g})") if check else ""
+    if check and check.get("views_disagree") and not check["refine"]:
+        test = (f"the lenslets' views disagree with the PSF (separate kernels explain {check['disagreement']:.3f} "
+                f"of the misfit), but the volume is extended ({check['extended_share']:.2f} of its energy in "
+                f"pieces wider than {EXTENDED_SPOTS:g} spots, threshold {check['extended_threshold']:g}): kernels per lenslet "
+                "would trade shifts with it")
     if record.get("check_skipped") and record.get("refined"):
         test = f"the lenslets' views not compared ({record['check_skipped']})"
     if record.get("refined"):

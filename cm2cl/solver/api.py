@@ -227,10 +227,12 @@ def _refined(solve, y, psf, weights, prm, padded_shape, x0):
 
     'common': one round, one kernel for every lenslet (over ``psf_refine_depth_nodes``). 'auto': that round,
     then the view check on the same volume (:func:`.psf_refine.view_disagreement`, kernels per lenslet fitted
-    to images of the commonly refined stack): where the lenslets' views disagree the check's kernels are
-    applied and the rest of ``AUTO_ROUNDS`` rounds of kernels per lenslet follow; where they agree, or the PSF
-    has no views to compare (:func:`.psf_refine.check_skipped`), the answer is the 'common' one. A number:
-    that many rounds of kernels per lenslet."""
+    to images of the commonly refined stack): where the lenslets' views disagree and the volume is made of
+    points (:func:`.psf_refine.extended_share`) the check's kernels are applied and the rest of
+    ``AUTO_ROUNDS`` rounds of kernels per lenslet follow; where they agree, the volume is extended (kernels per
+    lenslet trade shifts with extended objects), or the PSF has no views to compare
+    (:func:`.psf_refine.check_skipped`), the answer is the 'common' one. A number: that many rounds of kernels
+    per lenslet."""
     from . import psf_refine as R
 
     mode = prm.psf_refine
@@ -274,9 +276,15 @@ def _refined(solve, y, psf, weights, prm, padded_shape, x0):
             else:   # the check: kernels per lenslet on the same volume, imaged by the commonly refined stack
                 h_sep, k_sep, _, rec_check = R.refine_step(h, labels, rec.volume_padded, y - b,
                                                            prm.psf_refine_radius, w, check=True)
-                check = {**rec_check, "iterations": rec.iterations, "l1_scale": scale}
+                spot = R.spot_width_px(psf)
+                share = R.extended_share(rec.volume_padded, spot)
+                check = {**rec_check, "iterations": rec.iterations, "l1_scale": scale,
+                         "views_disagree": rec_check["refine"], "extended_share": share, "spot_px": spot,
+                         "extended_threshold": R.EXTENDED_SHARE,
+                         "refine": rec_check["refine"] and share <= R.EXTENDED_SHARE}
                 log.info("psf_refine auto: the lenslets' kernels explain %.3f of the misfit beyond a common one "
-                         "(threshold %.3f): %s", check["disagreement"], check["threshold"],
+                         "(threshold %.3f), %.2f of the volume's energy in extended pieces (threshold %.2f): %s",
+                         check["disagreement"], check["threshold"], share, R.EXTENDED_SHARE,
                          "refining them" if check["refine"] else "one kernel common to every lenslet")
                 if check["refine"]:
                     h = h_sep

@@ -173,9 +173,10 @@ class ADMMParams:
         "'common': one round with one kernel common to every lenslet (a blur or a shift of focus of the whole "
         "PSF, interpolated over psf_refine_depth_nodes). 'auto': that round, then a check on its volume: where "
         "the lenslets' views disagree with the PSF (separate kernels per lenslet explain more than 2.5% of the "
-        "misfit beyond one common kernel, with an F statistic above 1.25; info['psf_refine']['check']) the rest "
-        "of 12 rounds of kernels per lenslet follow, else the answer is the 'common' one (also for a PSF of one "
-        "view: a diffuser, a single lens). 'auto' and 'common' do not run with padding='support' or lateral "
+        "misfit beyond one common kernel, with an F statistic above 1.25; info['psf_refine']['check']) and the "
+        "volume is made of points (at most half its energy in pieces wider than 3 spots: kernels per lenslet "
+        "trade shifts with extended objects) the rest of 12 rounds of kernels per lenslet follow, else the "
+        "answer is the 'common' one (also for a PSF of one view: a diffuser, a single lens). 'auto' and 'common' do not run with padding='support' or lateral "
         "tiles (the PSF is then used as given).",
         unit="rounds", flag=True)
     psf_refine_iter: int = _param(

@@ -62,6 +62,16 @@ VIEW_DISAGREEMENT = 0.025
 #: default 9 lenslets x 49 taps on any sensor of 4000 pixels or more; non-negative kernels use fewer taps on
 #: noise than they have, so the test is conservative (white noise gives F ~ 0.3); matched PSFs gave at most 0.9
 VIEW_F = 1.25
+#: psf_refine='auto' refines per lenslet only where the check's volume is made of points: kernels per lenslet
+#: trade shifts with extended objects (docs/psf_refine.md: fibres with every mismatch kept 0.26 / 0.16 / 0.12 of
+#: their energy near the truth with them, 0.41 / 0.38 / 0.38 with one common kernel). The volume is extended
+#: where more than EXTENDED_SHARE of its energy lies in pieces (26-connected voxels above EXTENDED_LEVEL of its
+#: maximum) wider laterally than EXTENDED_SPOTS of the PSF's sharpest spots (:func:`extended_share`). On the
+#: quality suite's scenes (their seeds and 11-13) fibre volumes gave 0.67-0.97 and bead volumes at most 0.4
+#: (docs/psf_refine.md, stop 45)
+EXTENDED_LEVEL = 0.1
+EXTENDED_SPOTS = 3.0
+EXTENDED_SHARE = 0.5
 #: a round whose volume leaves at least this relative misfit (it explains 1% of the data or less: the sparse
 #: start removed everything, as the camera model's weights did at 200 photons) keeps the PSF: no kernel to fit
 EMPTY_MISFIT = 0.99
@@ -137,6 +147,36 @@ def check_skipped(psf: np.ndarray, labels: np.ndarray) -> str | None:
     if not views_through_depth(psf, labels):
         return "the PSF's pieces are not views through its depth"
     return None
+
+
+def spot_width_px(psf: np.ndarray) -> float:
+    """The width (pixels) of the PSF stack's sharpest spot: the diameter of the disc with the area of the
+    half-maximum piece around the brightest pixel of the plane with the highest peak."""
+    h = np.asarray(psf, np.float64)
+    plane = h[int(np.argmax(h.reshape(h.shape[0], -1).max(axis=1)))]
+    if not plane.max() > 0:
+        return 1.0
+    lab, _ = ndimage.label(plane >= 0.5 * plane.max(), structure=np.ones((3, 3)))
+    area = int(np.count_nonzero(lab == lab.flat[int(np.argmax(plane))]))
+    return float(2.0 * np.sqrt(area / np.pi))
+
+
+def extended_share(volume: np.ndarray, spot_px: float) -> float:
+    """The share of a (nz, ny, nx) volume's energy (its positive part) in extended pieces: 26-connected sets of
+    voxels above EXTENDED_LEVEL x its maximum whose lateral extent (the larger side of their bounding box in
+    y and x) exceeds EXTENDED_SPOTS x ``spot_px``. Beads reconstruct into pieces a few spots wide, fibres and
+    vessels into pieces many spots long. 0 for an empty volume."""
+    v = np.maximum(np.asarray(volume), 0)
+    top = float(v.max()) if v.size else 0.0
+    if not top > 0:
+        return 0.0
+    lab, n = ndimage.label(v > EXTENDED_LEVEL * top, structure=np.ones((3, 3, 3)))
+    if n == 0:
+        return 0.0
+    energy = ndimage.sum_labels(v, lab, index=np.arange(1, n + 1))
+    wide = np.array([max(s[1].stop - s[1].start, s[2].stop - s[2].start) > EXTENDED_SPOTS * spot_px
+                     for s in ndimage.find_objects(lab)])
+    return float(energy[wide].sum() / energy.sum())
 
 
 def depth_weights(nz: int, nodes: int) -> np.ndarray:
@@ -359,5 +399,5 @@ def view_disagreement(images, kernels, target, sensor_shape, radius: int, weight
 
 __all__ = ["lenslet_labels", "depth_weights", "round_schedule", "lenslet_images", "fit_kernels", "relax", "apply_kernels",
            "kernel_summary", "refine_step", "sensor_model", "view_disagreement", "views_through_depth", "AUTO_ROUNDS", "VIEW_DISAGREEMENT",
-           "VIEW_F", "OPTIONAL_MODES", "explicit_rounds", "plan_rounds", "EMPTY_MISFIT",
-           "check_skipped", "describe"]
+           "VIEW_F", "OPTIONAL_MODES", "spot_width_px", "extended_share", "EXTENDED_SHARE", "EXTENDED_SPOTS", "explicit_rounds", "plan_rounds",
+           "EMPTY_MISFIT", "check_skipped", "describe"]
