@@ -67,8 +67,8 @@ VIEW_F = 1.25
 #: their energy near the truth with them, 0.41 / 0.38 / 0.38 with one common kernel). The volume is extended
 #: where more than EXTENDED_SHARE of its energy lies in pieces (26-connected voxels above EXTENDED_LEVEL of its
 #: maximum) wider laterally than EXTENDED_SPOTS of the PSF's sharpest spots (:func:`extended_share`). On the
-#: quality suite's scenes (their seeds and 11-13) fibre volumes gave 0.67-0.97 and bead volumes at most 0.4
-#: (docs/psf_refine.md, stop 45)
+#: quality suite's scenes (their seeds and 11-13) the fibre scenes' volumes gave 0.60-0.90 and the bead scenes'
+#: at most 0.32 (docs/psf_refine.md, stop 45)
 EXTENDED_LEVEL = 0.1
 EXTENDED_SPOTS = 3.0
 EXTENDED_SHARE = 0.5
