@@ -23,7 +23,7 @@ import numpy as np
 
 import cm2cl
 from cm2cl.analysis import quality as Q
-from cm2cl.solver.psf_refine import VIEW_DISAGREEMENT
+from cm2cl.solver.psf_refine import EXTENDED_SHARE, VIEW_DISAGREEMENT
 
 DOCS = Path(__file__).resolve().parents[1] / "docs"
 SCENES = "beads,photons200,bg_haze10,bg_ramp20,dense,edge_planes,between,mm_blur,mm_depth,mm_issue,fibres,fibres_blur"
@@ -56,10 +56,10 @@ def passes(s: dict) -> bool:
                                    **({"energy_near": s["near"]} if "near" in s else s)}).values()))
 
 
-def cell(s: dict, secs: float, its: int, rounds: int = 0, d=None) -> str:
+def cell(s: dict, secs: float, its: int, rounds: int = 0, d=None, share=None) -> str:
     head = (f"near {s['near']:.3f}" if "near" in s else
             f"{s['recall']:.2f} / {s['false_per_10']:.1f} / {s['axial_err']:.2f}")
-    check = f", d {d:.3f}" if d is not None else ""
+    check = (f", d {d:.3f}" if d is not None else "") + (f", ext {share:.2f}" if share is not None else "")
     return f"{head}{'' if passes(s) else ' (fail)'}, {rounds} rnd{check}, {its} it, {secs:.1f} s"
 
 
@@ -77,7 +77,8 @@ def run(scenes, seeds, modes, log=print) -> list[dict]:
                 info = rec.info.get("psf_refine") or {}
                 its = int(info.get("iterations_total", rec.iterations))
                 check = info.get("check") or {}
-                row[label] = (score(sc, rec), secs, its, info.get("rounds", 0), check.get("disagreement"))
+                row[label] = (score(sc, rec), secs, its, info.get("rounds", 0), check.get("disagreement"),
+                              check.get("extended_share"))
             rows.append(row)
             log(f"{name} seed {seed}: " + " | ".join(f"{lab} {cell(*row[lab])}" for lab, _ in modes))
     return rows
@@ -93,7 +94,9 @@ def markdown(rows, modes, seconds: float, argv: str) -> str:
              "cell: recall / false maxima per 10 beads / mean |axial error| (planes), or the fibres' energy within 2 "
              "voxels of the truth; '(fail)' where a target of docs/quality.md is missed; refinement rounds run, "
              "'auto''s view check d (the misfit share kernels per lenslet explain beyond a common one; they "
-             f"refine above {VIEW_DISAGREEMENT:g}), iterations in all (the rounds' included) and seconds of the call.\n",
+             f"refine above {VIEW_DISAGREEMENT:g}) and the share of its volume's energy in extended pieces, 'ext' (they "
+             f"refine only at or below {EXTENDED_SHARE:g}), iterations in all (the rounds' included) and seconds of the "
+             "call.\n",
              "| scene | seed | " + " | ".join(f"psf_refine={v!r} ({lab})" for lab, v in modes) + " |",
              "|---|---|" + "---|" * len(modes)]
     for r in rows:
