@@ -94,9 +94,9 @@ def markdown(rows, modes, seconds: float, argv: str) -> str:
              "cell: recall / false maxima per 10 beads / mean |axial error| (planes), or the fibres' energy within 2 "
              "voxels of the truth; '(fail)' where a target of docs/quality.md is missed; refinement rounds run, "
              "'auto''s view check d (the misfit share kernels per lenslet explain beyond a common one; they "
-             f"refine above {VIEW_DISAGREEMENT:g}) and the share of its volume's energy in extended pieces, 'ext' (they "
-             f"refine only at or below {EXTENDED_SHARE:g}), iterations in all (the rounds' included) and seconds of the "
-             "call.\n",
+             f"refine above {VIEW_DISAGREEMENT:g}) and the share of its volume's energy in extended pieces, 'ext' "
+             f"(they refine only at or below {EXTENDED_SHARE:g}), iterations in all (the rounds' included) and "
+             "seconds of the call.\n",
              "| scene | seed | " + " | ".join(f"psf_refine={v!r} ({lab})" for lab, v in modes) + " |",
              "|---|---|" + "---|" * len(modes)]
     for r in rows:

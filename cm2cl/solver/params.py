@@ -176,8 +176,8 @@ class ADMMParams:
         "misfit beyond one common kernel, with an F statistic above 1.25; info['psf_refine']['check']) and the "
         "volume is made of points (at most half its energy in pieces wider than 3 spots: kernels per lenslet "
         "trade shifts with extended objects) the rest of 12 rounds of kernels per lenslet follow, else the "
-        "answer is the 'common' one (also for a PSF of one view: a diffuser, a single lens). 'auto' and 'common' do not run with padding='support' or lateral "
-        "tiles (the PSF is then used as given).",
+        "answer is the 'common' one (also for a PSF of one view: a diffuser, a single lens). 'auto' and 'common' "
+        "do not run with padding='support' or lateral tiles (the PSF is then used as given).",
         unit="rounds", flag=True)
     psf_refine_iter: int = _param(
         100, {"type": "int", "min": 1}, "Iterations of each solve before a PSF refinement round.", unit=_ITERS,

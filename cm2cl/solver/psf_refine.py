@@ -399,5 +399,5 @@ def view_disagreement(images, kernels, target, sensor_shape, radius: int, weight
 
 __all__ = ["lenslet_labels", "depth_weights", "round_schedule", "lenslet_images", "fit_kernels", "relax", "apply_kernels",
            "kernel_summary", "refine_step", "sensor_model", "view_disagreement", "views_through_depth", "AUTO_ROUNDS", "VIEW_DISAGREEMENT",
-           "VIEW_F", "OPTIONAL_MODES", "spot_width_px", "extended_share", "EXTENDED_SHARE", "EXTENDED_SPOTS", "explicit_rounds", "plan_rounds",
-           "EMPTY_MISFIT", "check_skipped", "describe"]
+           "VIEW_F", "OPTIONAL_MODES", "spot_width_px", "extended_share", "EXTENDED_SHARE", "EXTENDED_SPOTS",
+           "explicit_rounds", "plan_rounds", "EMPTY_MISFIT", "check_skipped", "describe"]
