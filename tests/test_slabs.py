@@ -295,6 +295,19 @@ def test_pinned_host_copies_stream_the_same(rt, monkeypatch):
     assert np.array_equal(a.volume, b.volume)
 
 
+def test_planes_are_shared_in_proportion_to_the_budgets():
+    """The planner's split of nz planes over devices: contiguous runs covering 0..nz in proportion to the
+    budgets, empty for a device without one, equal parts where no device has any (not NaN runs)."""
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert memory._proportional_runs(12, [3, 1]) == [(0, 9), (9, 12)]
+        assert memory._proportional_runs(10, [5, 0, 5]) == [(0, 5), (5, 5), (5, 10)]
+        assert memory._proportional_runs(9, [0, 0, 0]) == [(0, 3), (3, 6), (6, 9)]
+        assert memory._proportional_runs(7, [0]) == [(0, 7)]
+
+
 def test_a_cpu_devices_budget_is_the_hosts_available_memory(rt, monkeypatch):
     """A CPU device's buffers are host memory, whatever its driver reports (PoCL: a quarter of the RAM on
     one machine, 94% on another): the planner's budget is 90% of what the host has available less the

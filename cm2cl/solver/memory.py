@@ -267,8 +267,10 @@ def _lean_bytes(planes, slab, padded_shape, dtype, backend, scratch_per_plane, t
 
 def _proportional_runs(nz, budgets):
     """Contiguous runs of planes, one per device (empty where a device gets none), in proportion to
-    the budgets."""
-    share = np.asarray(budgets, float) / float(np.sum(budgets))
+    the budgets; in equal parts where no device has a budget (the plan is then refused for memory, naming
+    the planes each device would hold, not planned from NaN shares)."""
+    b = np.maximum(np.asarray(budgets, float), 0.0)
+    share = b / b.sum() if b.sum() > 0 else np.full(b.size, 1.0 / b.size)
     edges = (np.concatenate([[0], np.cumsum(share)]) * nz).round().astype(int)
     edges[-1] = nz
     return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:])]
