@@ -270,7 +270,7 @@ def depth_trend(full: bool, log=print, binning: int = 4, patch_um: float = 800.0
     from paper_scenes import scene_at
 
     base = scene_at("fig5_scattering", binning)
-    lss = PHANTOM_LS_UM if full else PHANTOM_LS_UM[0:1] + PHANTOM_LS_UM[3:4] + PHANTOM_LS_UM[5:6] + PHANTOM_LS_UM[7:]
+    lss = PHANTOM_LS_UM if full else tuple(PHANTOM_LS_UM[i] for i in (0, 3, 5, 7))   # phantoms 1, 4, 6, 8
     # the patches tile the phantom (the paper's phantoms fill its field; the model's covers the middle of the
     # sensor's): as many whole patches as fit its lateral size, centred on the axis
     n_patch = int(math.floor(min(base["volume"]["size_mm"][:2]) * 1000.0 / patch_um + 1e-9))
@@ -423,8 +423,8 @@ def measure(full: bool, log=print, pinhole_bin: int | None = None, bead_bin: int
                   f"({dt['binning']}x binned sensor, {next(iter(ph.values()))['dz_um']:g}-um planes over 2 mm; "
                   "scattering not in the model)")
     how_dr = (f"`cm2cl analyze depth-range` (cm2cl.analysis.particles.depth_range, {dt['patch_um']:g}-um patches "
-              f"tiling the phantom's middle {dt['tiled_mm']:g} x {dt['tiled_mm']:g} mm, one elongation for every phantom) on "
-              + on_phantom)
+              f"tiling the phantom's middle {dt['tiled_mm']:g} x {dt['tiled_mm']:g} mm, one elongation for every "
+              "phantom) on " + on_phantom)
     why_el = ("the model's PSF discriminates depth about 2.5x more finely than the paper's device (the PCC rows "
               "above), so a particle's reconstruction is shorter in depth")
     ls0 = next(iter(ph))
