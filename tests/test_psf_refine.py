@@ -2,6 +2,8 @@
 kernels, the lenslet footprints cover the sensor, and on a scene made with a PSF that differs from the given
 one by per-lenslet kernels the refined PSF moves towards the true one and the beads come back."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from scipy import ndimage, signal
@@ -360,6 +362,7 @@ def test_auto_stays_common_on_a_matching_psf_and_refines_the_lenslets_of_a_misma
     # one kernel per depth node, common to every lenslet
     assert len(info["per_round"][0]["kernels"]) == info["depth_nodes"] == 3
     assert "lenslet_kernels" not in info["per_round"][0]
+    assert info["reweight"] is None and rec.params["l1_reweight"] == 0    # plain l1 where no kernels per lenslet
     common = cm2cl.reconstruct(matched.y, matched.psf, **kw, psf_refine="common")
     np.testing.assert_array_equal(rec.volume, common.volume)
     np.testing.assert_array_equal(rec.psf, common.psf)
@@ -373,6 +376,9 @@ def test_auto_stays_common_on_a_matching_psf_and_refines_the_lenslets_of_a_misma
     assert rec.psf is not None and len(info["per_round"]) == R.AUTO_ROUNDS
     assert len(info["per_round"][0]["kernels"]) == 3 and len(info["per_round"][0]["lenslet_kernels"]) == 9
     assert all(len(r["kernels"]) >= 9 for r in info["per_round"][1:])
+    # the final solve, after kernels per lenslet, reweights l1 (psf_refine_reweight rounds at eps REWEIGHT_EPS)
+    assert info["reweight"] == {"rounds": 1, "eps": R.REWEIGHT_EPS}
+    assert rec.params["l1_reweight"] == 1 and rec.params["l1_reweight_eps"] == R.REWEIGHT_EPS
     s = Q.score_beads(rec.volume, sc.beads)
     assert plain["false_per_10"] > 2 and one["false_per_10"] > 2, (plain, one)
     assert s["false_per_10"] <= 1.0 and s["recall"] >= 0.95, (plain, one, s)
@@ -531,9 +537,32 @@ def test_series_auto_decides_on_frame_0_once(rt, tmp_path):
         first = cm2cl.reconstruct(frames[0], psf, psf_refine="auto", **kw)
         assert first.info["psf_refine"]["rounds"] == rounds, (name, first.info["psf_refine"]["check"])
         np.testing.assert_array_equal(h, first.psf)
+        # every frame is solved as frame 0's final solve was: with its reweighted l1 where it fitted kernels per
+        # lenslet (the record beside the stack says so, for a resumed job)
+        reweight = first.info["psf_refine"]["reweight"]
+        assert meta["extra"]["reweight"] == reweight and (reweight is not None) == (name == "m")
         vol = np.asarray(zarr.open_group(str(tmp_path / f"{name}.ome.zarr"), mode="r")["0"])
-        one = cm2cl.reconstruct(frames[1], h, **kw, psf_refine=0).volume
+        one = cm2cl.reconstruct(frames[1], h, **kw, psf_refine=0, psf_refine_reweight=0,
+                                **({"l1_reweight": reweight["rounds"], "l1_reweight_eps": reweight["eps"]}
+                                   if reweight else {})).volume
         np.testing.assert_allclose(vol[1], one, rtol=1e-5, atol=1e-6 * one.max())
+
+
+def test_final_reweight_only_after_kernels_per_lenslet():
+    """psf_refine='auto' reweights l1 in its final solve only where it fitted kernels per lenslet (its volume is
+    then made of points, and the PSF fits every view); psf_refine_reweight=0 turns it off, and a reweighting the
+    user asked for (l1_reweight) is theirs, everywhere."""
+    from cm2cl.solver.params import ADMMParams
+
+    p = ADMMParams()
+    assert p.psf_refine_reweight == 1 and p.l1_reweight == 0
+    assert R.final_reweight(p, True) == {"rounds": 1, "eps": R.REWEIGHT_EPS}
+    assert R.final_reweight(p, False) is None
+    assert R.final_reweight(replace(p, psf_refine_reweight=0), True) is None
+    assert R.final_reweight(replace(p, l1_reweight=2), True) is None
+    q = R.with_reweight(p, {"rounds": 3, "eps": 0.25})
+    assert (q.l1_reweight, q.l1_reweight_eps) == (3, 0.25) and replace(q, l1_reweight=0, l1_reweight_eps=0.1) == p
+    assert R.with_reweight(p, None) is p
 
 
 def test_refine_line_says_what_the_refinement_did():

@@ -14,7 +14,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..solver.params import ADMMParams
-from ..solver.psf_refine import explicit_rounds
+from ..solver.psf_refine import explicit_rounds, with_reweight
 from .inputs import check_bin, devices_arg, layout_options, offsets, read_psf, working_psf
 from .progress import FrameProgress
 
@@ -75,9 +75,10 @@ def command(args, params: ADMMParams) -> int:
                          voxel_size_um=wp.voxel_size_um, depths_um=wp.depths_um, record=record,
                          channel=args.channel, frame_interval_s=args.frame_interval, levels=args.pyramid,
                          ngff=args.ngff) as store:
+        reweight = None
         if refine:
-            h = _refined(args, params, series, h, store, key, frame_prep, solver_kw, dt, wp)
-        params = replace(params, psf_refine=0)
+            h, reweight = _refined(args, params, series, h, store, key, frame_prep, solver_kw, dt, wp)
+        params = with_reweight(replace(params, psf_refine=0), reweight)
         from ..solver.attenuation import attenuate
 
         h, _ = attenuate(h, wp.depths_um, params)   # every frame's model (the refinement attenuated its own)
@@ -100,7 +101,8 @@ def command(args, params: ADMMParams) -> int:
 
 
 def _refined(args, params, series, h, store, key, frame_prep, solver_kw, dt, wp):
-    """The PSF stack every frame is solved with under --psf-refine (:func:`cm2cl.jobs.refine.series_psf`)."""
+    """(the PSF stack every frame is solved with under --psf-refine, the reweighted l1 they take from frame 0's
+    final solve: :func:`cm2cl.jobs.refine.series_psf`)."""
     from ..jobs.refine import refined_psf_path, series_psf
 
     if not args.quiet:
@@ -110,12 +112,13 @@ def _refined(args, params, series, h, store, key, frame_prep, solver_kw, dt, wp)
         print(f"cm2cl: the PSF is refined on frame 0 ({how}) unless '{refined_psf_path(args.output)}' "
               "holds this job's", file=sys.stderr)
     solve_kw = {"dtype": dt, "backend": args.backend, "device": devices_arg(args.device)[0], **solver_kw}
-    h, read_back = series_psf(args.output, key, series, h, store, frame_prep, params, solve_kw=solve_kw,
-                              voxel_size_um=wp.voxel_size_um, depths_um=wp.depths_um, psf_name=str(args.psf))
+    h, read_back, reweight = series_psf(args.output, key, series, h, store, frame_prep, params, solve_kw=solve_kw,
+                                        voxel_size_um=wp.voxel_size_um, depths_um=wp.depths_um,
+                                        psf_name=str(args.psf))
     if read_back:
         print(f"cm2cl: note: the PSF refined on frame 0 is read back from '{refined_psf_path(args.output)}'",
               file=sys.stderr)
-    return h
+    return h, reweight
 
 
 def _grid(args, h, off, psf_off, device):

@@ -32,8 +32,10 @@ def refined_psf_path(output) -> Path:
 
 
 def series_psf(output, key: str, series, h, store, prepare, params, *, solve_kw: dict, voxel_size_um=None,
-               depths_um=None, psf_name: str = "psf") -> tuple[np.ndarray, bool]:
-    """(the PSF stack the frames are solved with, whether it was read back rather than refined now).
+               depths_um=None, psf_name: str = "psf") -> tuple[np.ndarray, bool, dict | None]:
+    """(the PSF stack the frames are solved with, whether it was read back rather than refined now, the
+    reweighted l1 of frame 0's final solve that every frame takes as well: ``info['psf_refine']['reweight']``,
+    :func:`cm2cl.solver.psf_refine.with_reweight`).
 
     ``key`` is the job's fingerprint (of the given stack and parameters), ``store`` the open
     :class:`~cm2cl.jobs.FrameStore` (its finished frames decide whether a missing stack may be made again),
@@ -49,7 +51,7 @@ def series_psf(output, key: str, series, h, store, prepare, params, *, solve_kw:
         psf, meta = io.read_tiff(path)
         if (meta.get("extra") or {}).get("job") == key and psf.shape == tuple(h.shape):
             log.info("the PSF refined on frame 0 is read back from '%s'", path)
-            return np.asarray(psf, np.float64), True
+            return np.asarray(psf, np.float64), True, meta["extra"].get("reweight")
     if len(store.missing()) < len(series):
         _missing(path, output)
     log.info("refining the PSF on frame 0 (%s)", describe(params.psf_refine))
@@ -63,13 +65,14 @@ def series_psf(output, key: str, series, h, store, prepare, params, *, solve_kw:
         io.write_tiff(tmp, rec.psf, voxel_size_um=voxel_size_um, depths_um=depths_um,
                       extra={"what": "PSF stack self-calibrated on frame 0 of the series (psf_refine), working grid",
                              "job": key, "psf": psf_name, "psf_refine": rec.info["psf_refine"]["rounds"],
+                             "reweight": rec.info["psf_refine"].get("reweight"),
                              "frame": f"{first.path}[{first.index}]" if first is not None else "0",
                              "store": str(output)})
         os.replace(tmp, path)
     finally:
         if tmp.exists():
             tmp.unlink()
-    return np.asarray(rec.psf, np.float64), False
+    return np.asarray(rec.psf, np.float64), False, rec.info["psf_refine"].get("reweight")
 
 
 def _missing(path, output):

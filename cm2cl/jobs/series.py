@@ -94,15 +94,18 @@ def reconstruct_series(frames, psf, output, *, client=None, devices=None, warm_s
 
         from ..solver.api import refine_runs
         from ..solver.attenuation import attenuate
+        from ..solver.psf_refine import with_reweight
+
+        reweight = None
 
         # N rounds, or 'auto' / 'common' where they can run: frame 0 decides, once for every frame
         if refine_runs(h, prm.psf_refine, padded_shape, radius=prm.psf_refine_radius):
             from .refine import series_psf
 
-            h, _ = series_psf(output, key, series, h, store, frame_prep, prm, voxel_size_um=vs, depths_um=d,
-                              solve_kw={"dtype": dt, "backend": backend, "device": (devices or [None])[0],
-                                        **solver_kw})
-        prm = replace(prm, psf_refine=0)
+            h, _, reweight = series_psf(output, key, series, h, store, frame_prep, prm, voxel_size_um=vs,
+                                        depths_um=d, solve_kw={"dtype": dt, "backend": backend,
+                                                               "device": (devices or [None])[0], **solver_kw})
+        prm = with_reweight(replace(prm, psf_refine=0), reweight)
         h, _ = attenuate(h, d, prm)   # every frame's model: the stack scaled by its planes' ballistic fractions
         return run_series(series, h, store, params=prm, key=key, executor=ex, dtype=dt, backend=backend,
                           prepare=frame_prep, progress=progress, solver_kw=solver_kw)

@@ -292,14 +292,16 @@ def _refined(solve, y, psf, weights, prm, padded_shape, x0):
                 else:
                     n = 1
         rnd += 1
-    solver, rec = solve(h, replace(prm, psf_refine=n), P, x_start)
+    # where kernels per lenslet were fitted (the volume is points, the PSF fits each view) l1 is reweighted
+    reweight = R.final_reweight(prm, mode == "auto" and n > 1)
+    solver, rec = solve(h, R.with_reweight(replace(prm, psf_refine=n), reweight), P, x_start)
     rec.psf = h
     rec.info["psf_refine"] = {"mode": mode if staged else "given",
                               "refined": not all(r["kept"] for r in rounds), "check": check,
                               "rounds": n, "lenslets": int(labels.max()) if n > 1 or mode != "auto" else 1,
                               "radius_px": prm.psf_refine_radius, "overrelax": R.OVERRELAX,
                               "depth_nodes": int(R.depth_weights(h.shape[0], prm.psf_refine_depth_nodes).shape[0]),
-                              "l1_start": prm.psf_refine_l1_start, "per_round": rounds,
+                              "l1_start": prm.psf_refine_l1_start, "per_round": rounds, "reweight": reweight,
                               "iterations_total": sum(r["iterations"] for r in rounds) + rec.iterations}
     if check_why is not None:
         rec.info["psf_refine"]["check_skipped"] = check_why

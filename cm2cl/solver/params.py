@@ -196,6 +196,14 @@ class ADMMParams:
         "The first refinement round solves with this many times the l1 weight, coming down geometrically to 1 x "
         "in the last round: the kernels are first fitted to the brightest structure, before spurious emitters "
         "can absorb the PSF's misfit; 1: every round at the final weight.", unit="x", flag=True)
+    # 1: where auto's rounds per lenslet ran, beads the rounds left just below a fifth of the brightest (l1 shrinks
+    # every emitter by the same amount, so faint ones lose the largest share) came back (docs/psf_refine.md)
+    psf_refine_reweight: int = _param(
+        1, {"type": "int", "min": 0, "max": 10},
+        "Rounds of reweighted l1 (as l1_reweight, eps 0.3 of the volume's maximum) in the final solve where "
+        "psf_refine='auto' fitted kernels per lenslet (the volume is then made of points and the PSF fits each "
+        "view): the emitters keep more of their light, which plain l1 shrinks by the same amount for faint and "
+        "bright ones alike; 0: plain l1. A given l1_reweight applies instead.", unit="rounds", flag=True)
     l1_scale: float = _param(
         1.0, _POS, "Multiplier of the l1 weight, given or by the rule (the PSF refinement's rounds use it).")
     # None: a clear sample; the PSF is a clear-medium calibration (cm2cl.solver.attenuation)

@@ -27,6 +27,8 @@ one kernel for the whole stack. All of it runs on the host in float64.
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 from scipy import fft as sfft
 from scipy import ndimage, optimize, signal
@@ -72,6 +74,11 @@ VIEW_F = 1.25
 EXTENDED_LEVEL = 0.1
 EXTENDED_SPOTS = 3.0
 EXTENDED_SHARE = 0.5
+#: eps (a fraction of the volume's maximum) of the reweighted l1 in psf_refine='auto''s final solve after kernels
+#: per lenslet (ADMMParams.psf_refine_reweight): beads that rounds per lenslet left at 0.17-0.19 of the brightest
+#: came back above a fifth of it; eps 0.1 (weights down to 0.1 on the brightest) let more false maxima through
+#: on the all-mismatches scene's seeds than 0.3 (docs/psf_refine.md, stop 46)
+REWEIGHT_EPS = 0.3
 #: a round whose volume leaves at least this relative misfit (it explains 1% of the data or less: the sparse
 #: start removed everything, as the camera model's weights did at 200 photons) keeps the PSF: no kernel to fit
 EMPTY_MISFIT = 0.99
@@ -177,6 +184,23 @@ def extended_share(volume: np.ndarray, spot_px: float) -> float:
     wide = np.array([max(s[1].stop - s[1].start, s[2].stop - s[2].start) > EXTENDED_SPOTS * spot_px
                      for s in ndimage.find_objects(lab)])
     return float(energy[wide].sum() / energy.sum())
+
+
+def final_reweight(params, per_lenslet: bool) -> dict | None:
+    """``{'rounds', 'eps'}`` of the reweighted l1 of the final solve, or None: ``params.psf_refine_reweight``
+    rounds at eps REWEIGHT_EPS where psf_refine='auto' fitted kernels per lenslet (``per_lenslet``), unless
+    the rounds are 0 or ``params.l1_reweight`` (the user's reweighting, which applies everywhere) is set."""
+    if not per_lenslet or not params.psf_refine_reweight or params.l1_reweight:
+        return None
+    return {"rounds": int(params.psf_refine_reweight), "eps": REWEIGHT_EPS}
+
+
+def with_reweight(params, reweight: dict | None):
+    """``params`` with the reweighted l1 of ``reweight`` (:func:`final_reweight`'s record; None: unchanged): the
+    parameters of the final solve, and of every frame of a series that refined its PSF on frame 0."""
+    if not reweight:
+        return params
+    return replace(params, l1_reweight=int(reweight["rounds"]), l1_reweight_eps=float(reweight["eps"]))
 
 
 def depth_weights(nz: int, nodes: int) -> np.ndarray:
@@ -400,4 +424,5 @@ def view_disagreement(images, kernels, target, sensor_shape, radius: int, weight
 __all__ = ["lenslet_labels", "depth_weights", "round_schedule", "lenslet_images", "fit_kernels", "relax", "apply_kernels",
            "kernel_summary", "refine_step", "sensor_model", "view_disagreement", "views_through_depth", "AUTO_ROUNDS", "VIEW_DISAGREEMENT",
            "VIEW_F", "OPTIONAL_MODES", "spot_width_px", "extended_share", "EXTENDED_SHARE", "EXTENDED_SPOTS",
-           "explicit_rounds", "plan_rounds", "EMPTY_MISFIT", "check_skipped", "describe"]
+           "explicit_rounds", "plan_rounds", "EMPTY_MISFIT", "check_skipped", "describe", "final_reweight",
+           "with_reweight", "REWEIGHT_EPS"]
