@@ -574,8 +574,10 @@ def test_refine_line_says_what_the_refinement_did():
     assert refine_line(agreed) == ("PSF refined in 1 round, one kernel common to every lenslet (300 iterations in "
                                    "all); --psf-refine auto: the lenslets' views agree with the PSF: separate kernels "
                                    "explain 0.004 of the misfit (threshold 0.025), F 0.30 (threshold 1.25)")
-    line = refine_line({**agreed, "rounds": 12, "check": {**check, "refine": True, "disagreement": 0.2}})
-    assert line.startswith("PSF refined in 12 rounds (one kernel common to every lenslet, then kernels per lenslet)")
+    line = refine_line({**agreed, "rounds": 12, "check": {**check, "refine": True, "disagreement": 0.2},
+                        "reweight": {"rounds": 1, "eps": 0.3}})
+    assert line.startswith("PSF refined in 12 rounds (one kernel common to every lenslet, then kernels per lenslet), "
+                           "then l1 reweighted 1x (eps 0.3 of the maximum)")
     assert "views disagree" in line and "0.200 of the misfit" in line
     gated = {**check, "views_disagree": True, "disagreement": 0.05, "extended_share": 0.81, "extended_threshold": 0.5}
     line = refine_line({**agreed, "check": gated})

@@ -267,6 +267,9 @@ def refine_line(record) -> str:
         if record["rounds"] > 1:
             what = f"{record['rounds']} rounds" + (" (one kernel common to every lenslet, then kernels per lenslet)"
                                                    if record.get("mode") == "auto" else "")
+            rw = record.get("reweight")
+            if rw:
+                what += f", then l1 reweighted {rw['rounds']}x (eps {rw['eps']:g} of the maximum)"
         else:
             what = "1 round" + (", one kernel common to every lenslet" if record.get("mode") in OPTIONAL_MODES else "")
         head = f"PSF refined in {what} ({record['iterations_total']} iterations in all)"
