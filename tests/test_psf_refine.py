@@ -514,14 +514,25 @@ def test_cli_psf_refine_takes_auto_and_zero(rt, tmp_path, capsys):
     assert e.value.code == 2 and not (tmp_path / "w.ome.tif").exists()
 
 
-def test_series_auto_decides_on_frame_0_once(rt, tmp_path):
+def test_series_auto_decides_on_frame_0_once(rt, tmp_path, monkeypatch):
     """reconstruct_series(..., psf_refine='auto'): frames whose views disagree with the PSF (each lenslet blurred
     and shifted by its own kernel) get the stack refined per lenslet on frame 0, frames made by the given PSF
     one refined by a common kernel; either way it is kept as OUT.psf.ome.tif, the stack frame 0's own
-    reconstruction refines, and every frame is the plain solve with it."""
+    reconstruction refines, and every frame is the solve with it and frame 0's final l1 (reweighted where it
+    fitted kernels per lenslet), in the first run and in a resumed one that reads the stack back."""
     import zarr
 
+    import cm2cl.jobs.series as S
     from cm2cl import io
+
+    solved_with = []
+    real_run_series = S.run_series
+
+    def spy(*a, **k):
+        solved_with.append(k["params"])
+        return real_run_series(*a, **k)
+
+    monkeypatch.setattr(S, "run_series", spy)
 
     psf, _, y, _ = _kernel_mismatch_scene()
     kw = dict(max_iter=40, tol=0.0, psf_refine_iter=40)
@@ -541,6 +552,10 @@ def test_series_auto_decides_on_frame_0_once(rt, tmp_path):
         # lenslet (the record beside the stack says so, for a resumed job)
         reweight = first.info["psf_refine"]["reweight"]
         assert meta["extra"]["reweight"] == reweight and (reweight is not None) == (name == "m")
+        again = cm2cl.reconstruct_series(frames, psf, tmp_path / f"{name}.ome.zarr", psf_refine="auto", **kw)
+        assert again.computed == 0
+        want = (reweight["rounds"], reweight["eps"]) if reweight else (0, 0.1)
+        assert [(p.l1_reweight, p.l1_reweight_eps, p.psf_refine) for p in solved_with[-2:]] == [want + (0,)] * 2
         vol = np.asarray(zarr.open_group(str(tmp_path / f"{name}.ome.zarr"), mode="r")["0"])
         one = cm2cl.reconstruct(frames[1], h, **kw, psf_refine=0, psf_refine_reweight=0,
                                 **({"l1_reweight": reweight["rounds"], "l1_reweight_eps": reweight["eps"]}
