@@ -9,7 +9,9 @@ the MIPs in docs/img/paper_<scene>_mip.png.
 ``--binning`` simulates the scenes on a more (or less) binned sensor than their files say (4: a quarter
 of the pixels, a few minutes per scene); the MIPs go to an ``img`` folder beside ``--doc``.
 
-``--trace`` scores the iterate at those iterations too (what more iterations buy); ``--variants`` adds
+Every run goes through ``cm2cl.reconstruct``, the path a user's command takes (the defaults' PSF refinement
+included; the table says what it did). ``--trace`` scores the iterate at those iterations too (what more
+iterations buy; counted over the refinement's rounds and the final solve); ``--variants`` adds
 runs with other weights: ``tv0`` = TV off (l1 only), ``dtype64`` = the default in float64, ``points`` =
 TV off with each plane's l1 weight ~ ||h_i||^2 (``--prior points-weighted``; ``--prior points`` is TV off
 alone, the ``tv0`` row).
@@ -58,18 +60,29 @@ def scene_at(name: str, binning: int | None):
     return data
 
 
+class _Recording:
+    """Wraps the solver class ``cm2cl.reconstruct`` builds, keeping the last instance (the solve running now: a
+    round of the PSF refinement or the final solve), so that ``--trace`` can score its iterate."""
+
+    def __init__(self, cls):
+        self.cls, self.last = cls, None
+
+    def __call__(self, *args, **kwargs):
+        self.last = self.cls(*args, **kwargs)
+        return self.last
+
+
 def run_variant(name, sim, label, var, kw, marks, ts, img_dir) -> dict:
-    """One reconstruction of a simulated scene, scored at the end and (``marks``) along the way."""
-    from cm2cl.solver.admm import ADMMSolver
-    from cm2cl.solver.params import ADMMParams
+    """One reconstruction of a simulated scene through ``cm2cl.reconstruct`` (the user's path: the PSF
+    refinement of the defaults included), scored at the end and (``marks``: iterations counted over the
+    refinement's rounds and the final solve, as the callback counts them) along the way."""
+    from unittest import mock
 
-    from cm2cl.solver.attenuation import attenuate
+    import cm2cl
+    from cm2cl.solver import api
 
-    dtype = kw.pop("dtype", np.float32)
-    prm = ADMMParams(**kw)
-    psf, _ = attenuate(sim.psf, sim.depths_um, prm)   # the 'scattering' variant: the sample's l_s in the model
-    s = ADMMSolver(psf, prm, dtype=dtype)
     trace = []
+    rec_cls = _Recording(api.ADMMSolver)
 
     def score(x):
         m = analysis.score_beads(x, sim)
@@ -77,21 +90,31 @@ def run_variant(name, sim, label, var, kw, marks, ts, img_dir) -> dict:
 
     def cb(row):
         if row["iter"] in marks:
+            s = rec_cls.last
             m, th = score(np.maximum(s.get_volume("x"), 0)[:, s.crop[0], s.crop[1]])
             trace.append((row["iter"], m["recall"], m["precision"], th))
 
     t = time.perf_counter()
-    rec = s.solve(np.asarray(sim.measurement, np.float64), callback=cb if marks else None)
+    with mock.patch.object(api, "ADMMSolver", rec_cls):
+        rec = cm2cl.reconstruct(np.asarray(sim.measurement, np.float64), sim.psf, voxel_size_um=sim.voxel_size_um,
+                                depths_um=sim.depths_um, callback=cb if marks else None, **kw)
     tr = time.perf_counter() - t
     m, thirds = score(rec.volume)
     if var == "default":
         analysis.mip_png(rec.volume, img_dir / f"paper_{name}_mip.png", sim.voxel_size_um, sim.depths_um,
                          title=f"{name}: cm2cl defaults", gamma=0.6)
+    pr = rec.info.get("psf_refine") or {}
+    check = pr.get("check") or {}
+    refine = (f"{pr.get('mode', 'given')}: {pr.get('rounds', 0)} round(s)"
+              + (f", d {check['disagreement']:.3f}, F {check['f_statistic']:.2f}" if check else "")
+              + (f" ({pr['skipped']})" if pr.get("skipped") else ""))
     return dict(scene=name, variant=label, shape=f"{sim.psf.shape[0]} x {sim.psf.shape[1]} x {sim.psf.shape[2]}",
-                sim_s=ts, rec_s=tr, iterations=rec.iterations, converged=rec.info["converged"],
-                stop=rec.info["stop"], recall=m["recall"], precision=m["precision"], n_true=m["n_true"],
-                thirds=thirds, lat=m.get("lateral_rms_um", float("nan")), ax=m.get("axial_rms_um", float("nan")),
-                l1=rec.info["l1"], mib=rec.info["device_bytes"] / 2**20, trace=trace, dtype=np.dtype(dtype).name)
+                sim_s=ts, rec_s=tr, iterations=pr.get("iterations_total", rec.iterations),
+                converged=rec.info["converged"], stop=rec.info["stop"], recall=m["recall"],
+                precision=m["precision"], n_true=m["n_true"], thirds=thirds,
+                lat=m.get("lateral_rms_um", float("nan")), ax=m.get("axial_rms_um", float("nan")),
+                l1=rec.info["l1"], mib=rec.info["device_bytes"] / 2**20, trace=trace,
+                dtype=np.dtype(kw.get("dtype", np.float32)).name, refine=refine)
 
 
 def main(argv=None):
@@ -111,6 +134,18 @@ def main(argv=None):
                 "dtype64": ("defaults, float64", {"dtype": np.float64}),
                 "points": ("TV off, l1 per plane ~ ||h_i||^2 (= --prior points-weighted)", {"tv_noise_ratio": 0.0, "l1_plane_power": 2.0}),
                 "scattering": ("defaults, --scattering-length-um the scene's l_s", {"scattering_length_um": "scene"})}
+    unknown = [v for v in args.variants.split(",") if v not in variants]
+    if unknown:
+        raise SystemExit(f"--variants: unknown {', '.join(unknown)} (known: {', '.join(variants)})")
+    lengths = {}   # the l_s (and surface) each scene was simulated with: the 'scattering' variant's model
+    for name in args.scenes.split(","):
+        eff = [e for e in scene_at(name, args.binning).get("effects", []) if e.get("name") == "scattering"]
+        if eff:
+            lengths[name] = {"scattering_length_um": float(eff[0]["ls_um"]),
+                             **({"surface_um": float(eff[0]["surface_z_um"])}
+                                if eff[0].get("surface_z_um") is not None else {})}
+        elif "scattering" in args.variants.split(","):   # before any scene is simulated, not after the first
+            raise SystemExit(f"--variants scattering: scene {name} has no scattering effect")
     for name in args.scenes.split(","):
         t = time.perf_counter()
         sim = simulate.simulate_scene(scene_at(name, args.binning))
@@ -120,12 +155,7 @@ def main(argv=None):
             label += f", sensor binned {args.binning}x" if args.binning else ""
             kw = dict(extra) if args.max_iter is None else {"max_iter": args.max_iter, **extra}
             if kw.get("scattering_length_um") == "scene":   # the l_s (and surface) the scene was simulated with
-                eff = [e for e in scene_at(name, args.binning).get("effects", []) if e.get("name") == "scattering"]
-                if not eff:
-                    raise SystemExit(f"--variants scattering: scene {name} has no scattering effect")
-                kw["scattering_length_um"] = float(eff[0]["ls_um"])
-                if eff[0].get("surface_z_um") is not None:
-                    kw["surface_um"] = float(eff[0]["surface_z_um"])
+                kw.update(lengths[name])
                 label = label.replace("the scene's l_s", f"{kw['scattering_length_um']:g}")
             rows.append(run_variant(name, sim, label, var, kw, marks, ts, img_dir))
             print(rows[-1], flush=True)
@@ -151,14 +181,15 @@ def main(argv=None):
              "the solver's defaults (and the variants named). Depth thirds split the true beads and the detections "
              "by depth.", "",
              "| scene | variant | planes x sensor | iterations | stop | recall | precision | recall / precision by "
-             "depth third (near, middle, far) | beads per third | lateral RMS um | axial RMS um | device MiB | s |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "depth third (near, middle, far) | beads per third | lateral RMS um | axial RMS um | PSF refinement | "
+             "device MiB | s |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         th = ", ".join(f"{a:.2f} / {b:.2f}" for a, b, _ in r["thirds"])
         n = ", ".join(str(c) for _, _, c in r["thirds"])
         lines.append(f"| {r['scene']} | {r['variant']} | {r['shape']} | {r['iterations']} | {r['stop']} | "
                      f"{r['recall']:.2f} | {r['precision']:.2f} | {th} | {n} | {r['lat']:.1f} | {r['ax']:.1f} | "
-                     f"{r['mib']:.0f} | {r['rec_s']:.0f} |")
+                     f"{r.get('refine', 'not run (plain solve)')} | {r['mib']:.0f} | {r['rec_s']:.0f} |")
     traced = [r for r in rows if r["trace"]]
     if traced:
         lines += ["", "The iterate scored along the way (recall / precision, and recall by depth third):", "",
