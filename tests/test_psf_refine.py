@@ -347,6 +347,52 @@ def test_view_disagreement_tells_a_common_kernel_from_kernels_per_lenslet():
         assert o["lenslets"] == n == 9 and len(o["gains"]) == n
 
 
+def test_view_thresholds_follow_the_pixel_weights():
+    """The lower pair where every pixel the data term keeps counts alike (no weights, ones, a 0/1 mask), the
+    former one where the weights vary (a camera model's variances); view_disagreement records and applies it."""
+    shape = (40, 40)
+    plain = (R.VIEW_DISAGREEMENT, R.VIEW_F)
+    assert plain == (0.015, 0.6) and (R.VIEW_DISAGREEMENT_WEIGHTED, R.VIEW_F_WEIGHTED) == (0.025, 1.25)
+    mask = np.ones(shape)
+    mask[:5] = 0
+    varying = 1.0 / (1.0 + np.random.default_rng(3).uniform(0, 2, shape))
+    assert R.view_thresholds(None) == R.view_thresholds(np.ones(shape)) == R.view_thresholds(2 * mask) == plain
+    assert R.view_thresholds(varying) == (R.VIEW_DISAGREEMENT_WEIGHTED, R.VIEW_F_WEIGHTED)
+    psf = Q.array_psf(2, shape)
+    lab = R.lenslet_labels(psf)
+    x = np.zeros((2, 80, 80))
+    x[:, 30:50:4, 30:50:5] = 1.0
+    F = R.lenslet_images(psf, lab, x)
+    own = _per_lenslet_kernels(int(lab.max()), 3, 2, 1.0)
+    target = R.sensor_model(F, own, shape) + 0.002 * np.random.default_rng(4).normal(size=shape)
+    k = R.fit_kernels(F, target, shape, 3)
+    for w in (None, varying):
+        c = R.view_disagreement(F, k, target, shape, 3, w)
+        assert (c["threshold"], c["f_threshold"]) == R.view_thresholds(w)
+        assert c["refine"] == (c["disagreement"] > c["threshold"] and c["f_statistic"] > c["f_threshold"])
+
+
+def test_auto_refines_the_lenslets_of_a_blurred_and_aberrated_psf_unless_pixels_are_weighted(rt):
+    """The suite's blurred and aberrated PSF (mm_blur_aberr): the views disagree less than an aberration alone
+    makes them (d between the two thresholds), yet one common kernel leaves ghosts. Without pixel weights 'auto'
+    refines the lenslets and the ghosts go; under the camera model's variance weights the check keeps the former
+    thresholds (kernels per lenslet made matched frames worse there) and the answer stays 'common'."""
+    sc = Q.render_scene({s.name: s for s in Q.scene_specs()}["mm_blur_aberr"])
+    kw = dict(max_iter=300)
+    one = Q.score_beads(cm2cl.reconstruct(sc.y, sc.psf, psf_refine="common", **kw).volume, sc.beads)
+    rec = cm2cl.reconstruct(sc.y, sc.psf, psf_refine="auto", **kw)
+    check = rec.info["psf_refine"]["check"]
+    assert R.VIEW_DISAGREEMENT < check["disagreement"] < R.VIEW_DISAGREEMENT_WEIGHTED, check
+    assert check["refine"] and rec.info["psf_refine"]["rounds"] == R.AUTO_ROUNDS
+    s = Q.score_beads(rec.volume, sc.beads)
+    assert one["false_per_10"] > 5 and s["false_per_10"] <= 1.0 and s["recall"] >= 0.95, (one, s)
+    cam = cm2cl.reconstruct(sc.raw, sc.psf, psf_refine="auto", camera=sc.spec.camera.as_dict(), **kw)
+    info = cam.info["psf_refine"]
+    weighted = (R.VIEW_DISAGREEMENT_WEIGHTED, R.VIEW_F_WEIGHTED)
+    assert (info["check"]["threshold"], info["check"]["f_threshold"]) == weighted
+    assert not info["check"]["refine"] and info["rounds"] == 1, info["check"]
+
+
 def test_auto_stays_common_on_a_matching_psf_and_refines_the_lenslets_of_a_mismatched_one(rt):
     """psf_refine='auto': its first round is 'common' (one kernel for every lenslet), then the view check on that
     round's volume. On beads imaged by the given PSF the views agree and the answer is 'common''s bit for bit; on

@@ -53,17 +53,26 @@ VIEW_SHARE = 0.2
 AUTO_ROUNDS = 12
 #: psf_refine='auto': refine per lenslet when separate kernels per lenslet explain more than this fraction of
 #: the misfit beyond one common kernel (:func:`view_disagreement`), measured on the volume of the first round
-#: (a sparse solve, its PSF then refined by a kernel common to every lenslet): on docs/quality.md's rendered
-#: scenes (their own seeds and 3 more, docs/psf_refine_seeds.md) matched and commonly blurred or shifted PSFs
-#: gave at most 0.021 and aberrated or vignetted ones at least 0.029, the demo's beads between 250-um planes
-#: 0.005-0.011 (docs/psf_refine.md); an aberrated PSF blurred as well (mm_blur_aberr) gave 0.018-0.034 and is
-#: refined on some seeds only: lower thresholds that catch it also refined blurred fibre scenes and ruined one
-#: (docs/psf_refine.md, stop 41)
-VIEW_DISAGREEMENT = 0.025
-#: ... and when the F statistic of that comparison exceeds this: the 0.999 quantile of F(392, N) for the
-#: default 9 lenslets x 49 taps on any sensor of 4000 pixels or more; non-negative kernels use fewer taps on
-#: noise than they have, so the test is conservative (white noise gives F ~ 0.3); matched PSFs gave at most 0.9
-VIEW_F = 1.25
+#: (a sparse solve, its PSF then refined by a kernel common to every lenslet). On docs/quality.md's rendered
+#: bead scenes whose PSF matches or differs alike for every lenslet (their own seeds and 11-13: 52 frames) d was
+#: 0.003-0.017 (90% below 0.013), on aberrated or vignetted ones at least 0.029, and on an aberrated PSF blurred
+#: as well (mm_blur_aberr) 0.018-0.034. Kernels per lenslet forced on those 52 frames kept every one at the
+#: bead targets (mean axial error 0.13 -> 0.06 plane) for 4.6x the time, while mm_blur_aberr left unrefined
+#: keeps 16-25 false maxima per 10 beads (1.2 refined): a needless refinement costs time, a missed one ghosts,
+#: so the threshold sits at the matched frames' upper edge (docs/psf_refine.md, stop 47). The demo's beads
+#: between 250-um planes gave 0.005-0.011, a paper scene 0.005 (binned 8x).
+VIEW_DISAGREEMENT = 0.015
+#: ... and when the F statistic of that comparison exceeds this: twice what separate kernels reach on white
+#: noise (0.3: non-negative kernels use fewer taps than they have; the 0.999 quantile of F(392, N) for the
+#: default 9 lenslets x 49 taps is 1.25 on any sensor of 4000 pixels or more). On a small sensor (128 x 128:
+#: F ~ 41 d) it binds with d; on a large one F grows with the pixels and d decides
+VIEW_F = 0.6
+#: the pair where the data term weights pixels unequally (camera=, weights=): there the kernel fits follow the
+#: variance weights, and kernels per lenslet forced on matched frames made them worse (mm_issue 1.00 / 1.0 ->
+#: 0.93 / 1.0, mm_blur 1.00 / 1.0 -> 0.97 / 1.5, dense 0.94 / 0.2 -> 0.91 / 1.4 recall / false maxima per 10
+#: beads), while those frames' d reached 0.020-0.026 (docs/psf_refine.md, stop 47)
+VIEW_DISAGREEMENT_WEIGHTED = 0.025
+VIEW_F_WEIGHTED = 1.25
 #: psf_refine='auto' refines per lenslet only where the check's volume is made of points: kernels per lenslet
 #: trade shifts with extended objects (docs/psf_refine.md: fibres with every mismatch kept 0.26 / 0.16 / 0.12 of
 #: their energy near the truth with them, 0.41 / 0.38 / 0.38 with one common kernel). The volume is extended
@@ -387,6 +396,18 @@ def sensor_model(images, kernels, sensor_shape) -> np.ndarray:
     return out
 
 
+def view_thresholds(weights=None) -> tuple[float, float]:
+    """The view check's (disagreement, F) thresholds: (VIEW_DISAGREEMENT, VIEW_F) where every pixel the data
+    term keeps counts alike (no weights, or a 0/1 mask), (VIEW_DISAGREEMENT_WEIGHTED, VIEW_F_WEIGHTED) where the
+    weights vary between pixels (a camera model's variances, a user's weights)."""
+    if weights is not None:
+        kept = np.asarray(weights, np.float64)
+        kept = kept[kept > 0]
+        if kept.size and float(np.ptp(kept)) > 1e-9 * float(kept.max()):
+            return VIEW_DISAGREEMENT_WEIGHTED, VIEW_F_WEIGHTED
+    return VIEW_DISAGREEMENT, VIEW_F
+
+
 def view_disagreement(images, kernels, target, sensor_shape, radius: int, weights=None) -> dict:
     """How much the lenslets' views disagree with the PSF, from one fit of a kernel per lenslet (``kernels``,
     :func:`fit_kernels` on ``images`` F_j, one depth node), against one kernel common to every lenslet:
@@ -404,7 +425,7 @@ def view_disagreement(images, kernels, target, sensor_shape, radius: int, weight
     though they still remove a share of the misfit that on a small sensor is several per cent; d is the
     effect's size, which on a large sensor
     stays small for a mismatch too slight to make ghosts while F grows with N. Refine when both exceed their
-    thresholds (VIEW_DISAGREEMENT, VIEW_F).
+    thresholds (:func:`view_thresholds`).
     Returns ``{'disagreement': d, 'f_statistic': F, 'refine', 'threshold', 'f_threshold', 'lenslets', 'gains'}``."""
     w = np.ones(sensor_shape) if weights is None else np.asarray(weights, np.float64)
     common = images.sum(axis=0, keepdims=True)
@@ -416,13 +437,15 @@ def view_disagreement(images, kernels, target, sensor_shape, radius: int, weight
     dof = int(np.count_nonzero(w > 0)) - p_sep
     d = (s_com - s_sep) / s_com if s_com > 0 else 0.0
     f = ((s_com - s_sep) / max(p_sep - p_com, 1)) / (s_sep / dof) if s_sep > 0 and dof > 0 else 0.0
-    return {"disagreement": d, "f_statistic": f, "refine": bool(d > VIEW_DISAGREEMENT and f > VIEW_F),
-            "threshold": VIEW_DISAGREEMENT, "f_threshold": VIEW_F, "lenslets": int(images.shape[0]),
+    d0, f0 = view_thresholds(weights)
+    return {"disagreement": d, "f_statistic": f, "refine": bool(d > d0 and f > f0),
+            "threshold": d0, "f_threshold": f0, "lenslets": int(images.shape[0]),
             "gains": [float(g) for g in kernels.sum(axis=(1, 2))]}
 
 
-__all__ = ["lenslet_labels", "depth_weights", "round_schedule", "lenslet_images", "fit_kernels", "relax", "apply_kernels",
-           "kernel_summary", "refine_step", "sensor_model", "view_disagreement", "views_through_depth", "AUTO_ROUNDS", "VIEW_DISAGREEMENT",
-           "VIEW_F", "OPTIONAL_MODES", "spot_width_px", "extended_share", "EXTENDED_SHARE", "EXTENDED_SPOTS",
+__all__ = ["lenslet_labels", "depth_weights", "round_schedule", "lenslet_images", "fit_kernels", "relax",
+           "apply_kernels", "kernel_summary", "refine_step", "sensor_model", "view_disagreement", "view_thresholds",
+           "views_through_depth", "AUTO_ROUNDS", "VIEW_DISAGREEMENT", "VIEW_F", "VIEW_DISAGREEMENT_WEIGHTED",
+           "VIEW_F_WEIGHTED", "OPTIONAL_MODES", "spot_width_px", "extended_share", "EXTENDED_SHARE", "EXTENDED_SPOTS",
            "explicit_rounds", "plan_rounds", "EMPTY_MISFIT", "check_skipped", "describe", "final_reweight",
            "with_reweight", "REWEIGHT_EPS"]
