@@ -199,8 +199,8 @@ def main(argv=None):
                 th = [tuple(t) for t in th]
                 lines.append(f"| {r['scene']} | {r['variant']} | {it} | {rc:.2f} | {pr:.2f} | "
                              + " / ".join(f"{a:.2f}" for a, _, _ in th) + " |")
-    lines += [""] + [f"![{r['scene']}](img/paper_{r['scene']}_mip.png)" for r in rows if r["variant"].startswith("defaults")
-                     and "float64" not in r["variant"]] + [""]
+    shown = dict.fromkeys(r["scene"] for r in rows if r["variant"].startswith("defaults") and "float64" not in r["variant"])
+    lines += [""] + [f"![{name}](img/paper_{name}_mip.png)" for name in shown] + [""]
     doc = Path(args.doc)
     text = doc.read_text() if doc.exists() else ""
     if "\n## " in text:   # hand-written notes after the tables (what the figures mean) survive a re-run
