@@ -269,6 +269,22 @@ def test_suite_specs_are_renderable_and_distinct():
     assert {s.name for s in q} <= set(names) and all(s.shape == (96, 96) for s in q)
 
 
+def test_calibration_frame_shares_the_optics_not_the_beads_or_the_noise():
+    spec = {s.name: s for s in Q.scene_specs()}["fibres_mm"]
+    cal = Q.calibration_spec(spec)
+    assert (cal.kind, cal.n_beads, cal.seed) == ("beads", 40, spec.seed + Q.CALIBRATION_SEED_OFFSET)
+    assert (cal.mismatch, cal.background, cal.bg_level, cal.photons, cal.camera, cal.nz, cal.shape) == (
+        spec.mismatch, spec.background, spec.bg_level, spec.photons, spec.camera, spec.nz, spec.shape)
+    small = replace(spec, nz=NZ, shape=SHAPE)
+    sc, cs = Q.render_scene(small), Q.render_scene(Q.calibration_spec(small))
+    np.testing.assert_array_equal(cs.psf_true, sc.psf_true)       # the same optics
+    np.testing.assert_array_equal(cs.psf, sc.psf)                 # and the same nominal stack given
+    assert not np.allclose(cs.psf_true, cs.psf)                   # which they differ from
+    assert cs.beads is not None and len(cs.beads) == 40 and sc.beads is None
+    # the background is of the same kind and level, its field drawn with the calibration frame's own seed
+    assert cs.bg.max() == pytest.approx(sc.bg.max(), rel=0.5) and not np.allclose(cs.bg, sc.bg)
+
+
 # ------------------------------------------------------------------------------------------------- the tool
 def test_config_parsing_and_refusal_before_any_solve(monkeypatch):
     import quality_suite as qs
@@ -293,6 +309,48 @@ def test_config_parsing_and_refusal_before_any_solve(monkeypatch):
     with pytest.raises(qs.ConfigError, match="unknown scene"):
         qs.run_suite({}, scenes=["nope"], quick=True)
     assert qs.main(["--quick", "--scenes", "beads", "--config", "x=nope=1"]) == 2
+
+
+def test_suite_psf_calibrated_solves_with_the_stack_refined_on_the_calibration_frame(monkeypatch):
+    import quality_suite as qs
+
+    with pytest.raises(qs.ConfigError, match="suite_psf"):
+        qs.run_suite(["x=suite_psf=measured"], scenes=["beads"], quick=True)
+    real = qs.cm2cl.reconstruct
+    calls = []
+
+    def spy(y, psf, **kw):   # short solves, one round of refinement: what is checked is which frame and PSF
+        rec = real(y, psf, **{**kw, "max_iter": min(kw.get("max_iter", 30), 30), "psf_refine": "common"})
+        calls.append((np.array(y), np.array(psf), rec, kw))
+        return rec
+
+    monkeypatch.setattr(qs.cm2cl, "reconstruct", spy)
+    spec = {s.name: s for s in Q.scene_specs(quick=True)}["mm_all"]
+    sc, cs = Q.render_scene(spec), Q.render_scene(Q.calibration_spec(spec))
+    logged = []
+    rows = qs.run_suite({"cal": {"suite_psf": "calibrated"}}, scenes=["mm_all"], quick=True, log=logged.append)
+    assert {r["config"] for r in rows} == {"defaults", "cal"}
+    # the calibration: the calibration frame (not the scene's) with the nominal stack, at the defaults
+    y0, psf0, rec0, kw0 = calls[0]
+    assert kw0 == {}
+    np.testing.assert_array_equal(y0, cs.y)
+    np.testing.assert_array_equal(psf0, sc.psf)
+    assert rec0.psf is not None and not np.allclose(rec0.psf, sc.psf)
+    assert "calibration frame" in logged[0]
+    # every later solve is the scene's frame: 'defaults' with the nominal stack, 'cal' with the refined one
+    later = calls[1:]
+    assert all(np.array_equal(y, sc.y) for y, _, _, _ in later)
+    given = [c for c in later if np.array_equal(c[1], sc.psf)]
+    refined = [c for c in later if np.array_equal(c[1], rec0.psf)]
+    assert len(given) + len(refined) == len(later) and given and refined
+    assert sum(r["config"] == "cal" and not r["reused"] for r in rows) == len(refined)
+    # the real data have no calibration frame: the configuration is skipped there and the summary says so
+    logged.clear()
+    assert qs.run_scene("dc3d", "real", sc.psf, sc.y, {"cal": {"suite_psf": "calibrated"}}, True,
+                        log=logged.append) == []
+    assert "no calibration frame" in logged[0]
+    cells = qs.summary(rows, qs.normalise_configs({"cal": {"suite_psf": "calibrated"}}))
+    assert cells[-1].count("of 1") == 2
 
 
 def test_quick_scene_through_the_api_has_every_column(tmp_path):

@@ -1,7 +1,7 @@
 """The quality suite (issue 24, item 5): scenes rendered with a PSF the reconstruction is not given, and the
 real DiffuserCam 2D/3D data, reconstructed by ``cm2cl.reconstruct`` with one or more configurations at 50,
 200 and converged iterations and at the defaults, scored and written to docs/quality.md (table, summary,
-MIPs in docs/img/quality_*.png).
+MIPs in docs/img/quality_*.png; with ``--out docs/NAME.md``, docs/img/NAME_*.png).
 
     python tools/quality_suite.py [--config NAME=key=value,key=value ...] [--scenes a,b] [--quick]
         [--out docs/quality.md] [--no-reuse] [--real-bin 2] [--no-mips]
@@ -12,7 +12,11 @@ that is not a literal is a string): ``--config points=tv_noise_ratio=0`` or
 ``reconstruct`` does not take is refused with one line before any solve. Two keywords belong to the suite:
 ``suite_frame=raw`` gives the reconstruction the camera frame with its offset (default: the frame minus the
 offset, as a user who subtracted it), and the value ``$camera`` stands for the scene's camera as a dict
-(gain, offset, read_noise), e.g. ``--config cam=camera=$camera,suite_frame=raw``.
+(gain, offset, read_noise), e.g. ``--config cam=camera=$camera,suite_frame=raw``. ``suite_psf=calibrated``
+gives the reconstruction, instead of the nominal PSF, the stack refined on a bead frame recorded through the
+scene's optics (``cm2cl.analysis.quality.calibration_spec``; reconstructed at the defaults, its ``rec.psf``:
+what ``cm2cl reconstruct BEADS --save-psf`` writes), the lab's calibration step; the real data have no such
+frame and skip that configuration.
 
 Iteration settings per (scene, configuration): '50' and '200' (max_iter 50 / 200, tol 0: exactly that many
 iterations), 'converged' (max_iter 1000, the configuration's stopping rule), 'defaults' (the configuration
@@ -50,7 +54,9 @@ SETTINGS = ("50", "200", "converged", "defaults")
 OVERRIDES = {"50": {"max_iter": 50, "tol": 0.0}, "200": {"max_iter": 200, "tol": 0.0},
              "converged": {"max_iter": 1000}, "defaults": {}}
 STOP_KEYS = {"max_iter", "tol", "tol_change", "patience"}
-SUITE_KEYS = {"suite_frame"}
+SUITE_KEYS = {"suite_frame", "suite_psf"}
+#: suite_psf's values: the nominal stack, or the one refined on the scene's calibration frame
+SUITE_PSF = ("given", "calibrated")
 #: keywords the suite passes itself (a configuration may not set them)
 OWN_KEYS = {"measurement", "psf", "callback", "callback_every"}
 REAL = {"dc2d": "DiffuserCam 2D (hand, real data, 1 plane; binned 4x: 300 x 400)",
@@ -138,6 +144,8 @@ def check_configs(configs: dict) -> None:
             raise ConfigError(f"config {name!r}: the suite sets {', '.join(own)} itself")
         if kw.get("suite_frame", "offset-subtracted") not in ("raw", "offset-subtracted"):
             raise ConfigError(f"config {name!r}: suite_frame is 'raw' or 'offset-subtracted', got {kw['suite_frame']!r}")
+        if kw.get("suite_psf", "given") not in SUITE_PSF:
+            raise ConfigError(f"config {name!r}: suite_psf is {' or '.join(map(repr, SUITE_PSF))}, got {kw['suite_psf']!r}")
         try:
             ADMMParams(**{k: v for k, v in kw.items() if k in declared and v != "$camera"})
         except (InputError, TypeError, ValueError) as exc:
@@ -180,6 +188,7 @@ def residual(psf, y, rec) -> float:
 def _kwargs(kw: dict, setting: str, camera: dict | None) -> tuple[dict, str]:
     kw = dict(kw)
     frame = kw.pop("suite_frame", "offset-subtracted")
+    kw.pop("suite_psf", None)
     kw = {k: (camera if v == "$camera" else v) for k, v in kw.items()}
     kw.update(OVERRIDES[setting])
     return kw, frame
@@ -215,11 +224,20 @@ def _runs(kw: dict, reuse: bool):
     return ("converged", "200", "50", "defaults"), None
 
 
-def run_scene(name, kind, psf, y, configs, reuse, sc=None, raw=None, camera=None, keep=None, log=print) -> list[dict]:
+def run_scene(name, kind, psf, y, configs, reuse, sc=None, raw=None, camera=None, keep=None, log=print,
+              calibrated=None) -> list[dict]:
     """Every configuration x iteration setting on one scene; rows in SETTINGS order per configuration.
-    ``keep`` (a dict) gets the 'defaults' volume per configuration."""
+    ``keep`` (a dict) gets the 'defaults' volume per configuration. ``calibrated``: the PSF of the
+    configurations with ``suite_psf='calibrated'`` (None: they are skipped, with a line in the log)."""
     rows = []
+    given = psf
     for cname, ckw in configs.items():
+        psf = given
+        if ckw.get("suite_psf", "given") == "calibrated":
+            if calibrated is None:
+                log(f"{name:<12} {cname:<16} skipped: no calibration frame for this scene")
+                continue
+            psf = calibrated
         order, default_max = _runs(ckw, reuse)
         done, recs = {}, {}
         for setting in order:
@@ -249,6 +267,18 @@ def run_scene(name, kind, psf, y, configs, reuse, sc=None, raw=None, camera=None
     return rows
 
 
+def calibrated_psf(spec, log=print) -> np.ndarray:
+    """The PSF stack refined on ``spec``'s calibration frame (:func:`cm2cl.analysis.quality.calibration_spec`),
+    reconstructed at the defaults from the nominal stack: ``rec.psf``."""
+    cal = Q.render_scene(Q.calibration_spec(spec))
+    t = time.perf_counter()
+    rec = cm2cl.reconstruct(cal.y, cal.psf)
+    pr = rec.info.get("psf_refine") or {}
+    log(f"{spec.name:<12} calibration frame: psf_refine {pr.get('mode')}, {pr.get('rounds')} round(s), "
+        f"{time.perf_counter() - t:.1f} s")
+    return rec.psf if getattr(rec, "psf", None) is not None else cal.psf
+
+
 def real_data(name: str, bin_factor: int):
     import datasets
 
@@ -270,11 +300,11 @@ def scene_names(quick: bool = False) -> list[str]:
 
 
 def run_suite(configs, scenes=None, quick: bool = False, *, reuse: bool = True, real_bin: int = 2,
-              mip_dir=None, log=print) -> list[dict]:
+              mip_dir=None, mip_prefix: str = "quality", log=print) -> list[dict]:
     """Run the suite: ``configs`` ({name: reconstruct keywords}, or 'NAME=k=v,...' strings; 'defaults' is
     added first), ``scenes`` (names, default all of :func:`scene_names`), ``quick`` (the small scenes, no
     real data). Returns one dict per scene x config x setting with :data:`COLUMNS`. ``mip_dir``: save the
-    MIPs of the representative scenes there."""
+    MIPs of the representative scenes there, named ``{mip_prefix}_{scene}.png``."""
     configs = normalise_configs(configs)
     specs = {s.name: s for s in Q.scene_specs(quick)}
     known = list(specs) + ([] if quick else list(REAL))
@@ -287,10 +317,12 @@ def run_suite(configs, scenes=None, quick: bool = False, *, reuse: bool = True, 
         keep = {} if (mip_dir is not None and n in MIP_SCENES) else None
         if n in specs:
             sc = Q.render_scene(specs[n])
+            cal = calibrated_psf(specs[n], log) if any(kw.get("suite_psf") == "calibrated"
+                                                       for kw in configs.values()) else None
             rows += run_scene(n, sc.spec.kind, sc.psf, sc.y, configs, reuse, sc=sc, raw=sc.raw,
-                              camera=sc.spec.camera.as_dict(), keep=keep, log=log)
+                              camera=sc.spec.camera.as_dict(), keep=keep, log=log, calibrated=cal)
             if keep:
-                mip_figure(keep, sc, Path(mip_dir) / f"quality_{n}.png", f"{n}: {sc.spec.what}")
+                mip_figure(keep, sc, Path(mip_dir) / f"{mip_prefix}_{n}.png", f"{n}: {sc.spec.what}")
         else:
             data = real_data(n, real_bin)
             if data is None:
@@ -303,7 +335,7 @@ def run_suite(configs, scenes=None, quick: bool = False, *, reuse: bool = True, 
                 from cm2cl import analysis
 
                 for cname, vol in keep.items():
-                    analysis.mip_png(vol, Path(mip_dir) / f"quality_{n}_{_slug(cname)}.png", gamma=0.6,
+                    analysis.mip_png(vol, Path(mip_dir) / f"{mip_prefix}_{n}_{_slug(cname)}.png", gamma=0.6,
                                      title=f"DiffuserCam 3D (binned {real_bin}x): {cname}, 'defaults' setting")
     return rows
 
@@ -373,15 +405,16 @@ def verdict(rows, scene, config) -> tuple[bool | None, str]:
 def summary(rows, configs) -> list[str]:
     scenes = list(dict.fromkeys(r["scene"] for r in rows))
     out = ["| scene | " + " | ".join(configs) + " |", "|---" * (len(configs) + 1) + "|"]
-    counts = dict.fromkeys(configs, 0)
+    counts, runs = dict.fromkeys(configs, 0), dict.fromkeys(configs, 0)
     for s in scenes:
         cells = []
         for c in configs:
             ok, txt = verdict(rows, s, c)
             counts[c] += bool(ok)
-            cells.append(txt)
+            runs[c] += ok is not None
+            cells.append(txt or "not run")
         out.append(f"| {s} | " + " | ".join(cells) + " |")
-    out.append("| **passed** | " + " | ".join(f"**{counts[c]} of {len(scenes)}**" for c in configs) + " |")
+    out.append("| **passed** | " + " | ".join(f"**{counts[c]} of {runs[c]}**" for c in configs) + " |")
     return out
 
 
@@ -505,13 +538,15 @@ def main(argv=None):
     out = Path(args.out)
     mip_dir = None if args.no_mips else out.parent / "img"
     t = time.perf_counter()
-    rows = run_suite(configs, scenes, args.quick, reuse=not args.no_reuse, real_bin=args.real_bin, mip_dir=mip_dir)
+    rows = run_suite(configs, scenes, args.quick, reuse=not args.no_reuse, real_bin=args.real_bin, mip_dir=mip_dir,
+                     mip_prefix=out.stem)
     secs = time.perf_counter() - t
     mips = []
     if mip_dir is not None:
         for n in MIP_SCENES:
             if any(r["scene"] == n for r in rows):
-                names = [f"quality_{n}_{_slug(c)}.png" for c in configs] if n == "dc3d" else [f"quality_{n}.png"]
+                names = ([f"{out.stem}_{n}_{_slug(c)}.png" for c in configs] if n == "dc3d"
+                         else [f"{out.stem}_{n}.png"])
                 mips += [mip_dir / f for f in names if (mip_dir / f).exists()]
     cmd = "python tools/quality_suite.py " + " ".join(
         [f"--config {c}={','.join(f'{k}={v!r}' for k, v in kw.items())}" for c, kw in configs.items() if c != "defaults"]

@@ -29,7 +29,10 @@ from .emitters import find_emitters, match_emitters
 __all__ = ["DETECT_REL", "LATERAL_TOL_VOX", "AXIAL_TOL_PLANES", "NEAR_RADIUS_VOX", "TARGETS",
            "score_beads", "nrmse", "energy_near", "quality_value", "targets_met",
            "Mismatch", "array_psf", "background_field", "Camera", "SceneSpec", "Scene", "render_scene",
-           "place_beads", "fibre_volume", "scene_specs"]
+           "place_beads", "fibre_volume", "scene_specs", "calibration_spec", "CALIBRATION_SEED_OFFSET"]
+
+#: a scene's calibration frame (:func:`calibration_spec`) is rendered with the scene's seed plus this
+CALIBRATION_SEED_OFFSET = 100
 
 #: detection threshold (fraction of the volume's maximum), matching tolerances and the "near" radius
 DETECT_REL = 0.2
@@ -458,6 +461,17 @@ def render_scene(spec: SceneSpec) -> Scene:
     raw = cam.gain * rng.poisson(expected) + rng.normal(0.0, cam.read_noise, shape) + cam.offset
     return Scene(spec=spec, y=raw - cam.offset, raw=raw, psf=psf, psf_true=psf_true, truth=truth, beads=beads,
                  expected=expected, signal=signal, bg=bg)
+
+
+def calibration_spec(spec: SceneSpec) -> SceneSpec:
+    """The bead frame a lab would record through the same optics as ``spec`` to calibrate the PSF: 40 beads
+    on the planes, with ``spec``'s PSF mismatch, background (kind and level), photon budget and camera, and a
+    seed of its own (``spec.seed`` + :data:`CALIBRATION_SEED_OFFSET`), so neither its beads nor its noise are
+    the scene's. Reconstructed with PSF refinement, it gives the refined stack (``rec.psf``, ``--save-psf``) a
+    sample of the same optics is then reconstructed with (``tools/quality_suite.py``'s ``suite_psf``)."""
+    return replace(spec, name=f"{spec.name}_calibration", what=f"40 beads through {spec.name}'s optics",
+                   kind="beads", n_beads=40, bead_planes=None, depth_jitter=0.0,
+                   seed=spec.seed + CALIBRATION_SEED_OFFSET)
 
 
 def scene_specs(quick: bool = False) -> list[SceneSpec]:
