@@ -9,7 +9,7 @@ MIPs in docs/img/quality_*.png; with ``--out docs/NAME.md``, docs/img/NAME_*.png
 A configuration is a named set of ``cm2cl.reconstruct`` keywords, values read as Python literals (a value
 that is not a literal is a string): ``--config points=tv_noise_ratio=0`` or
 ``--config w=tv_noise_ratio=0,l1_plane_power=2``; 'defaults' (no keywords) always runs first. A keyword
-``reconstruct`` does not take is refused with one line before any solve. Two keywords belong to the suite:
+``reconstruct`` does not take is refused with one line before any solve. The suite's own keywords and value:
 ``suite_frame=raw`` gives the reconstruction the camera frame with its offset (default: the frame minus the
 offset, as a user who subtracted it), and the value ``$camera`` stands for the scene's camera as a dict
 (gain, offset, read_noise), e.g. ``--config cam=camera=$camera,suite_frame=raw``. ``suite_psf=calibrated``
