@@ -145,7 +145,8 @@ def check_configs(configs: dict) -> None:
         if kw.get("suite_frame", "offset-subtracted") not in ("raw", "offset-subtracted"):
             raise ConfigError(f"config {name!r}: suite_frame is 'raw' or 'offset-subtracted', got {kw['suite_frame']!r}")
         if kw.get("suite_psf", "given") not in SUITE_PSF:
-            raise ConfigError(f"config {name!r}: suite_psf is {' or '.join(map(repr, SUITE_PSF))}, got {kw['suite_psf']!r}")
+            raise ConfigError(f"config {name!r}: suite_psf is {' or '.join(map(repr, SUITE_PSF))}, "
+                              f"got {kw['suite_psf']!r}")
         try:
             ADMMParams(**{k: v for k, v in kw.items() if k in declared and v != "$camera"})
         except (InputError, TypeError, ValueError) as exc:
