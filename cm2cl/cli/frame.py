@@ -260,8 +260,7 @@ def refine_line(record) -> str:
         test = (f"the lenslets' views disagree with the PSF (separate kernels explain {check['disagreement']:.3f} "
                 f"of the misfit), but the volume is extended ({check['extended_share']:.2f} of its energy in "
                 f"pieces wider than {EXTENDED_SPOTS:g} spots, threshold {check['extended_threshold']:g}): kernels "
-                "per lenslet would trade shifts with it; a PSF refined on beads through the same optics fits the "
-                "lenslets (--save-psf, then give it as --psf; docs/psf_refine.md)")
+                "per lenslet would trade shifts with it")
     if record.get("check_skipped") and record.get("refined"):
         test = f"the lenslets' views not compared ({record['check_skipped']})"
     if record.get("refined"):
