@@ -7,6 +7,7 @@ import sys
 import numpy as np
 import pytest
 import tifffile
+from scipy.ndimage import gaussian_filter
 
 from cm2cl import io
 from cm2cl.cli import main
@@ -243,8 +244,12 @@ def test_memory_estimate_bounds_the_solvers_allocations(rt):
 
 
 def test_prior_points_turns_tv_off(rt, tmp_path):
-    """--prior points: TV off (recorded); an explicit --tv wins; --l1-plane-power is not part of it."""
+    """--prior points: TV off (recorded); an explicit --tv or --l1-plane-power wins."""
     meas, psf = _files(tmp_path)
+    # planes blurred unequally (each keeps its light), so their norms ||h_i|| differ and the weights tell the powers
+    h = tifffile.imread(psf).astype(np.float64) - 100
+    h = np.stack([gaussian_filter(p, s) for p, s in zip(h, (0.0, 0.6, 1.0, 1.5))])
+    tifffile.imwrite(psf, (h + 100).round().astype(np.uint16), photometric="minisblack")
     base = ["reconstruct", str(meas), "--psf", str(psf), "--offset", "100", "--psf-offset", "100", "--max-iter", "5",
             "--quiet", "--prior", "points"]
     assert main(base + ["-o", str(tmp_path / "p.ome.tif")]) == 0
@@ -257,8 +262,14 @@ def test_prior_points_turns_tv_off(rt, tmp_path):
     info = json.loads((tmp_path / "w.cm2cl.json").read_text())["info"]
     h = io.read_tiff(psf)[0].astype(np.float64) - 100
     power = (h ** 2).sum(axis=(1, 2))
+    assert np.ptp(power) > 0.05 * power.mean()   # the planes differ, so the weights say which power was used
     assert info["tv"] == 0
     np.testing.assert_allclose(info["l1_plane_weights"], power / power.mean(), rtol=1e-5)
+    # --l1-plane-power wins over the prior's: 1 is the weights before stop 49, ~ ||h_i||
+    assert main(base + ["-o", str(tmp_path / "n.ome.tif"), "--l1-plane-power", "1"]) == 0
+    info = json.loads((tmp_path / "n.cm2cl.json").read_text())["info"]
+    assert info["tv"] == 0
+    np.testing.assert_allclose(info["l1_plane_weights"], np.sqrt(power) / np.sqrt(power).mean(), rtol=1e-5)
 
 
 @pytest.mark.parametrize("command", ["devices", "demo", "simulate", "reconstruct", "prepare-psf"])

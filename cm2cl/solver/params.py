@@ -33,7 +33,8 @@ PRESETS = {
 }
 
 #: priors for kinds of samples (``--prior``; docs/quality.md, docs/paper_scenes.md): 'default' (l1 at the
-#: universal threshold per plane, TV off: on the quality suite the best for beads and fibres alike);
+#: universal threshold, plane weights ~ ||h_i||^(1/2), TV off: on the quality suite the best for beads and fibres
+#: alike);
 #: 'points' (TV off, every plane's l1 alike: the former prior); 'points-weighted': each plane's l1 weight ~ ||h_i||^2;
 #: 'extended': TV at 5 x the noise level as well, for smooth extended structure, and the PSF refined by one kernel
 #: common to every lenslet: kernels per lenslet trade shifts with extended objects (on fibres with every mismatch,
@@ -79,13 +80,16 @@ class ADMMParams:
     # 0: TV spreads a bead into a plateau where the PSF blurs it; off, fibres are no worse (docs/quality.md)
     tv_noise_ratio: float = _param(
         0.0, _NONNEG, "Default TV weight (when tv is None) relative to the volume-domain noise level.")
-    # q = 1: the back-projected noise of plane i is sigma ||h_i||, so the universal threshold is per plane
-    # (docs/quality.md); q = 2 shrinks an isolated voxel alike in every plane (docs/paper_scenes.md)
+    # q = 1 follows noise alone (plane i's back-projected noise is sigma ||h_i||); q = 0 a model error the
+    # frame's smooth misfit carries, whose back-projection follows a plane's light, the same in every plane.
+    # Real frames carry both: q = 1/2 passed more of the quality suite's frames on four seeds than either
+    # (docs/psf_refine.md, "l1's plane weights"); q = 2 shrinks an isolated voxel alike in every plane
     l1_plane_power: float = _param(
-        1.0, {"type": "float", "min": 0, "max": 4},
-        "Plane i's l1 weight is l1 x ||h_i||^q / mean_j ||h_j||^q, q this power: 1 (default) makes each plane's "
-        "weight follow its back-projected noise sigma ||h_i||; 0 weighs all planes alike; 2 shrinks a point source "
-        "equally in every plane (info['l1_plane_weights']).")
+        0.5, {"type": "float", "min": 0, "max": 4},
+        "Plane i's l1 weight is l1 x ||h_i||^q / mean_j ||h_j||^q, q this power: 1 makes each plane's weight follow "
+        "its back-projected noise sigma ||h_i||; 0 weighs all planes alike; 0.5 (default) is halfway, for "
+        "frames with noise and model error; 2 shrinks a point source equally in every plane "
+        "(info['l1_plane_weights']).", flag=True)
     tv_axial_weight: float = _param(
         1.0, _POS, "Weight of axial differences in TV relative to lateral ones (non-cubic voxels: e.g. dx / dz).",
         flag=True)
