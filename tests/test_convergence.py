@@ -193,6 +193,7 @@ def test_default_l1_is_the_universal_threshold_with_plane_weights(rt):
     assert rec.info["tv"] == 0.0
     rule = rec.info["l1_rule"]
     assert rule["voxels"] == n and rule["rule"].startswith("universal") and rule["ratio"] == pytest.approx(np.sqrt(2 * np.log(n)))
+    assert rule["plane_power"] == 0.5
     roots = np.sqrt(np.sqrt((psf.reshape(psf.shape[0], -1) ** 2).sum(axis=1)))
     assert np.ptp(roots) > 0.05 * roots.mean()  # the planes' weights differ, so the power is seen
     np.testing.assert_allclose(rec.info["l1_plane_weights"], roots / roots.mean(), rtol=1e-9)

@@ -235,7 +235,7 @@ class Control:
                 else "universal threshold sqrt(2 ln N) x noise_x")
         return {"stop": self.stop, "converged": self.converged, "l1": self.l1, "tv": self.tv,
                 "l1_rule": {"rule": rule, "voxels": sc.voxels, "ratio": self.l1 / sc.noise_x if sc.noise_x else None,
-                            "noise_x": sc.noise_x},
+                            "noise_x": sc.noise_x, "plane_power": p.l1_plane_power},
                 "noise_sigma": self.scale.noise_sigma, "noise_x": self.scale.noise_x, "spectral_mean": self.scale.spectral_mean,
                 "initial_penalties": {f"mu_{n}": mu for n, mu in self.mu0.items()},
                 "penalty_policy": self.p.penalty, "tol": self.p.tol, "tol_change": self.p.tol_change}
