@@ -11,6 +11,7 @@ from scipy import ndimage, signal
 import cm2cl
 from cm2cl.analysis import quality as Q
 from cm2cl.errors import InputError
+from cm2cl.solver.params import ADMMParams
 from cm2cl.solver import psf_refine as R
 
 
@@ -120,6 +121,25 @@ def test_refinement_moves_the_psf_to_the_true_one_and_finds_the_beads(rt):
     assert misfit[-1] < 0.8 * misfit[0]
     s0, s1 = Q.score_beads(plain.volume, beads), Q.score_beads(rec.volume, beads)
     assert s1["f1"] > s0["f1"] and s1["recall"] >= 0.9, (s0, s1)
+
+
+def test_rounds_keep_their_penalties_and_the_final_solve_takes_the_default(rt):
+    """The refinement's rounds start at mu_v = 1 with rebalancing steps up to x3 (ROUND_PENALTIES: their 100
+    iterations shape the volume the kernels are fitted to); the final solve at the solver's default 0.2 with
+    steps up to x1.5. A mu_v the caller gives applies to both."""
+    from cm2cl.solver.control import ADAPT_MAX_STEP, DATA_PENALTY
+
+    psf, _, y, _ = _kernel_mismatch_scene()
+    kw = dict(psf_refine=2, psf_refine_iter=20, max_iter=80, background="none")
+    rec = cm2cl.reconstruct(y, psf, **kw)
+    assert [r["mu_v"] for r in rec.info["psf_refine"]["per_round"]] == [R.ROUND_PENALTIES["mu_v"]] * 2 == [1.0] * 2
+    assert rec.info["initial_penalties"]["mu_v"] == DATA_PENALTY
+    steps = [rec.history[f"mu_{n}"][1:] / rec.history[f"mu_{n}"][:-1] for n in ("v", "w")]
+    assert max(float(np.max(np.maximum(q, 1 / q))) for q in steps) <= ADAPT_MAX_STEP * (1 + 1e-6)
+    assert R.round_params(ADMMParams(adapt_max_step=2.0)) == ADMMParams(adapt_max_step=2.0, mu_v=1.0)
+    given = cm2cl.reconstruct(y, psf, mu_v=0.5, **kw)
+    assert [r["mu_v"] for r in given.info["psf_refine"]["per_round"]] == [0.5, 0.5]
+    assert given.info["initial_penalties"]["mu_v"] == 0.5
 
 
 def test_refinement_leaves_a_matching_psf_alone(rt):

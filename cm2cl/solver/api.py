@@ -242,7 +242,7 @@ def _refined(solve, y, psf, weights, prm, padded_shape, x0):
     w = pixel_weights(weights, y.shape)
     n = R.plan_rounds(mode)
     check_why = R.check_skipped(psf, labels) if mode == "auto" else None
-    inner = replace(prm, psf_refine=n, max_iter=min(prm.psf_refine_iter, prm.max_iter))
+    inner = R.round_params(replace(prm, psf_refine=n, max_iter=min(prm.psf_refine_iter, prm.max_iter)))
     h = np.asarray(psf, np.float64)
     P, x_start, rounds, check = padded_shape, x0, [], None
     rnd = 0
@@ -265,7 +265,8 @@ def _refined(solve, y, psf, weights, prm, padded_shape, x0):
         else:
             h = h_new
         rounds.append({"iterations": rec.iterations, "residual": misfit, "l1_scale": scale, "depth_nodes": nodes,
-                       "kernels": R.kernel_summary(k), "kept": bool(empty)})
+                       "mu_v": rec.info["initial_penalties"]["mu_v"], "kernels": R.kernel_summary(k),
+                       "kept": bool(empty)})
         gains = [q["gain"] for q in rounds[-1]["kernels"]]
         log.info("PSF refinement round %d of %d: %d iterations, misfit %.4f before it; %d kernels, gains %.2f-%.2f",
                  len(rounds), n, rec.iterations, misfit, len(gains), min(gains), max(gains))

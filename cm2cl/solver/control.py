@@ -21,11 +21,15 @@ NOISE_FLOOR = 1e-4
 #: an iterate that vanishes (weights far above the data) is judged against the data's scale, not 0
 ABS_FRACTION = 1e-3
 #: the initial data penalty mu_v on the normalised problem (every identity split starts at spectral_mean
-#: x mu_v): 1, the data term's curvature. 0.2 took 1.7-5.5x fewer iterations to 1% of the optimum on the
-#: penalty study's 8 cases but none fewer on DiffuserCam 3D binned 2x, and its better-converged answers
-#: lost a scene of the quality suite (mm_issue: 1.3 false maxima per 10 beads) and false maxima on
-#: mm_blur_aberr (16.0 -> 23.8 per 10): not the default (docs/penalty.md, docs/iterations.md)
-DATA_PENALTY = 1.0
+#: x mu_v), for the solve to the stopping rule: 0.2 came within 1% of the optimum 2.3-5.8x sooner than the
+#: solver of issue 28 on its bead scene, the demo and DiffuserCam 3D binned 4x (not on the 2x-binned grid),
+#: the smallest value that reached 0.1% on all eight cases of docs/penalty.md. Its answers lie closer to the
+#: optimum; with the PSF refinement's rounds kept at mu_v = 1 (psf_refine.ROUND_PENALTIES) the quality
+#: suite passed as many scenes as at 1 and its seeds 11-13 more (docs/iterations.md, stop 50)
+DATA_PENALTY = 0.2
+#: the largest factor of one adaptive rebalancing (adapt_max_step's default): at mu_v = 0.2 steps of x3
+#: overshot mu_w to 81x the spectral mean on DiffuserCam 3D binned 2x (835 iterations to 1%, 546 at x1.5)
+ADAPT_MAX_STEP = 1.5
 
 
 def noise_sigma(y) -> float:
@@ -86,7 +90,7 @@ class ProblemScale:
 
     def penalty(self, p: ADMMParams, name: str, kind: str) -> float:
         """Initial penalty of split ``name``: the given ``mu_<name>``, or for the data split mu_v =
-        DATA_PENALTY (the data term's curvature on the normalised problem) and for a split z = x
+        DATA_PENALTY (0.2; the data term's curvature is 1 on the normalised problem) and for a split z = x
         spectral_mean * mu_v: the x step then weighs the data and the splits equally at a frequency of
         average power (near 1, the splits dominate at every frequency but the strongest and the solve
         creeps). The adaptation raises penalties that start low quickly and reliably, one far too high less
@@ -176,8 +180,9 @@ class Control:
                 return mu
             q = _ratio(r, s)
             if q > p.adapt_ratio or q < 1.0 / p.adapt_ratio:
-                step = np.sqrt(q) if np.isfinite(q) else p.adapt_max_step
-                mu *= float(np.clip(step, 1.0 / p.adapt_max_step, p.adapt_max_step))
+                most = p.adapt_max_step if p.adapt_max_step is not None else ADAPT_MAX_STEP
+                step = np.sqrt(q) if np.isfinite(q) else most
+                mu *= float(np.clip(step, 1.0 / most, most))
         return float(np.clip(mu, mu0 / p.mu_range, mu0 * p.mu_range))
 
     def _relative(self, name: str, st: SplitStats, r: float, s: float, floor: float) -> tuple[float, float]:

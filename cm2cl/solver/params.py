@@ -100,8 +100,9 @@ class ADMMParams:
         "Chambolle dual iterations of the TV prox per ADMM iteration (warm-started).", unit=_ITERS, flag=True)
     mu_v: float | None = _param(
         None, _POS, "Initial ADMM penalty of the split v = Hx.",
-        auto="from the problem's scale: 1, the data term's curvature on the ||H|| = 1 scale (0.2 takes 1.7-5.5x fewer "
-             "iterations on most cases but converges to answers the quality suite scores lower: docs/penalty.md)")
+        auto="0.2 on the problem's scale (the data term's curvature is 1 on the ||H|| = 1 scale; 0.2 comes within 1% "
+             "of the optimum 2-6x sooner on most cases, docs/penalty.md); 1 in the PSF refinement's rounds, whose "
+             "100 iterations shape the volume their kernels are fitted to")
     mu_u: float | None = _param(
         None, _POS, "Initial ADMM penalty of the split u = x (TV).",
         auto="mu_v x the mean of H^T H's spectrum (its maximum is 1)")
@@ -122,8 +123,9 @@ class ADMMParams:
     # 1000, not 100: early on the duals build up and r / s reads 100-1000 on a fine start (docs/weights.md)
     adapt_ratio: float = _param(
         1000.0, {"type": "float", "min": 1}, "'adaptive': the residual ratio beyond which a penalty is rebalanced.")
-    adapt_max_step: float = _param(
-        3.0, {"type": "float", "min": 1, "exclusive": True}, "'adaptive': the largest factor of one rebalancing.")
+    adapt_max_step: float | None = _param(
+        None, {"type": "float", "min": 1, "exclusive": True}, "'adaptive': the largest factor of one rebalancing.",
+        auto="1.5; 3 in the PSF refinement's rounds")
     # after it the penalties stay, so ADMM's convergence with fixed penalties holds
     adapt_until: int = _param(
         100, {"type": "int", "min": 0}, "'adaptive': the last iteration at which penalties are rebalanced.",

@@ -47,6 +47,11 @@ RIDGE = 1e-3
 #: over-relaxation of each kernel update (measured on docs/quality.md's mismatch scenes: 1.7 converged in
 #: 4-6 rounds where 1.0 needed more than 10)
 OVERRELAX = 1.7
+#: the rounds' penalties where the caller gave none: a round stops at psf_refine_iter (100) iterations, so its
+#: penalty shapes the volume the kernels are fitted to. The schedule was set at these (the solver's defaults
+#: before stop 50); with the final solve's 0.2 and x1.5 in the rounds too, mm_all lost 3 beads of 40
+#: (docs/iterations.md)
+ROUND_PENALTIES = {"mu_v": 1.0, "adapt_max_step": 3.0}
 #: a footprint piece of n is a view in a plane where it holds more than VIEW_SHARE / n of the plane's light
 VIEW_SHARE = 0.2
 #: psf_refine='auto': the rounds (the common one included) when the views disagree (docs/psf_refine.md's schedule)
@@ -285,6 +290,11 @@ def fit_kernels(images: np.ndarray, target: np.ndarray, sensor_shape, radius: in
     L = np.tril(L)
     k, _ = optimize.nnls(L.T, solve_triangular(L, b, lower=True), maxiter=50 * ncol)
     return k.reshape(n, 2 * radius + 1, 2 * radius + 1)
+
+
+def round_params(params):
+    """``params`` for a refinement round: :data:`ROUND_PENALTIES` where the caller left them unset (None)."""
+    return replace(params, **{k: v for k, v in ROUND_PENALTIES.items() if getattr(params, k) is None})
 
 
 def round_schedule(index: int, rounds: int, l1_start: float, depth_nodes: int) -> tuple[float, int]:
