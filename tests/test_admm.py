@@ -112,7 +112,7 @@ def test_beads_converge_and_emitters_are_recovered(rt):
     rec = reconstruct(y.astype(np.float32), psf.astype(np.float32), padded_shape=(64, 80),
                       l1=1e-3, tv=1e-4, max_iter=1000, tol=0, psf_refine=0)
     obj = rec.log_array("objective")
-    assert obj[-1] < 0.05 * obj[0]
+    assert obj[-1] < 0.1 * obj[0]    # (the first iterate's objective depends on the initial penalty: 2.07 at 0.2)
     # plateau: the last 100 of 1000 iterations change the objective by < 1 % (seen: 0.13 -> 0.128)
     assert abs(obj[-1] - obj[-101]) < 0.01 * obj[-1]
     vol = rec.volume
@@ -156,11 +156,12 @@ def test_real_diffusercam_data(rt):
     data = rec.log_array("data")
     y_energy = 0.5 * np.sum((y * rec.scaling["y_scale"]) ** 2)
     # the data residual falls by more than 200x from that of x = 0 (||y||^2/2), and the first iterate
-    # already moves towards the data; seen: 17322 (x = 0) -> 4340 (iteration 1) -> 24.4 after 100
+    # already moves towards the data; seen (the default penalties of stop 50): 15.2 at iteration 1, 0.85 after 100
     assert data[0] < 0.5 * y_energy
     assert data[-1] < y_energy / 200
     obj = rec.log_array("objective")
-    assert np.all(np.diff(obj[30:]) < 1e-3 * obj[30])  # no rise once the penalties have settled
+    # no rise once the penalties have settled: x1.5 steps rebalance them until iteration 40 here
+    assert np.all(np.diff(obj[50:]) < 1e-3 * obj[50])
     r0 = ref.admm(y, psf, padded_shape=rec.info["padded_shape"], **kw)
     err = np.linalg.norm(rec.volume - r0.volume) / np.linalg.norm(r0.volume)
     assert err < 1e-4
@@ -314,7 +315,8 @@ def test_rhs_made_by_tv_finish_gives_the_same_iterates(rt, tv, penalty):
     dtype, same, tol = precision(rt)
     psf, _, y = bead_problem(4)
     # plain ADMM: over-relaxed, "balance" changes a penalty on every one of these 25 iterations
-    kw = dict(l1=1e-3, tv=tv, max_iter=25, tol=0, penalty=penalty, relaxation=1.0)
+    # (mu_v 1: from the default 0.2 "balance" changes a penalty on all 25, and the reuse is never exercised)
+    kw = dict(l1=1e-3, tv=tv, max_iter=25, tol=0, penalty=penalty, relaxation=1.0, mu_v=1.0)
     out, calls = [], []
     for early in (True, False):
         s = ADMMSolver(psf, ADMMParams(**kw), dtype=dtype, backend="cl", padded_shape=(64, 80), max_slab_planes=3,
