@@ -52,8 +52,9 @@ def test_weighted_data_step_matches_the_twin(rt, dtype):
 
 
 def test_masking_a_hot_pixel_recovers_the_emitters(rt):
-    """One pixel at 100x the brightest bead's peak: unmasked, the volume's energy goes to that pixel's
-    explanation; masked, the four emitters are the four brightest local maxima again."""
+    """One pixel at 100x the brightest bead's peak: unmasked, the volume moves away from the clean frame's
+    answer (seen: by 25% of its norm at the defaults, 88% at mu_v = 1); masked, it is the clean frame's answer
+    and the four emitters are the four brightest local maxima."""
     psf, x, y = bead_problem(7)
     hot = y.copy()
     hot[5, 33] = 100 * y.max()
@@ -74,9 +75,11 @@ def test_masking_a_hot_pixel_recovers_the_emitters(rt):
     clean = cm2cl.reconstruct(y, psf, **kw, psf_refine=0)
     assert top4(clean.volume) == truth
     assert top4(good.volume) == truth
-    assert top4(bad.volume) != truth
-    v = np.sort(bad.volume.ravel())[::-1]
-    assert v[:10].sum() > 0.5 * v.sum()          # the hot pixel's explanation dominates unmasked
+
+    def off(rec):
+        return np.linalg.norm(rec.volume - clean.volume) / np.linalg.norm(clean.volume)
+
+    assert off(good) < 0.01 and off(bad) > 0.1      # the hot pixel pulls the unmasked answer away
 
 
 def test_cli_reports_and_masks(rt, tmp_path, capsys):

@@ -70,8 +70,8 @@ def test_no_wrap_around_into_the_sensor(rt):
 def test_support_padding_reconstructs_like_full_padding(rt):
     psf = _compact_psf(3)
     x = np.zeros((3, 64, 80))
-    for z, r, c in ((0, 24, 30), (1, 40, 50), (2, 30, 44)):
-        x[z, r, c] = 1.0
+    for z, r, c, a in ((0, 24, 30, 1.0), (1, 40, 50, 0.7), (2, 30, 44, 0.4)):   # unequal: one brightest voxel
+        x[z, r, c] = a
     y = ref.forward(psf, x, (64, 80))
     a = cm2cl.reconstruct(y, psf, max_iter=150)
     b = cm2cl.reconstruct(y, psf, max_iter=150, padding="support")

@@ -16,7 +16,9 @@ from test_admm import bead_problem
 
 P = (64, 80)
 M = (32, 40)
-BASE = dict(max_iter=60, tol=0, padded_shape=P)
+# 150: the last quarter (the stability check's plateau) comes after adapt_until (100), where the penalties stay;
+# at the default x1.5 steps they still rebalance every 10th iteration before it
+BASE = dict(max_iter=150, tol=0, padded_shape=P)
 
 
 def _base():
@@ -247,12 +249,17 @@ def test_many_planes_match_the_float64_twin(rt):
 
 
 def test_one_iteration_already_moves_towards_the_data(rt):
-    """Issue 8 item 11: --max-iter 1 returned all zeros; the data split now starts at its minimiser."""
+    """Issue 8 item 11: --max-iter 1 returned all zeros; the data split now starts at its minimiser. The
+    plain solve's first iterate fits the data better than x = 0. With the default PSF refinement the final
+    solve is warm-started from a round of max_iter iterations at mu_v 1 and starts at its own 0.2: after a
+    1-iteration round its first iterate overshoots (seen: data 2.3x that of x = 0), after 3 it is below 0.1."""
     psf, y = _base()
-    rec = cm2cl.reconstruct(y, psf, max_iter=1, padded_shape=P)
+    rec = cm2cl.reconstruct(y, psf, max_iter=1, padded_shape=P, psf_refine=0)
     assert np.abs(rec.volume).max() > 0
     y_energy = 0.5 * np.sum((y * rec.scaling["y_scale"]) ** 2)
-    assert rec.log[0]["data"] < 0.75 * y_energy  # x = 0 has y_energy; seen 0.53 y_energy
+    assert rec.log[0]["data"] < 0.75 * y_energy  # x = 0 has y_energy
+    rec = cm2cl.reconstruct(y, psf, max_iter=3, padded_shape=P)
+    assert np.abs(rec.volume).max() > 0 and rec.log[-1]["data"] < 0.1 * y_energy
 
 
 def test_tv_off_long_run_keeps_its_penalties(rt):

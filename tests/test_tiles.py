@@ -42,12 +42,15 @@ KW = dict(max_iter=80, tol=0, background="none", tv_noise_ratio=30.0, l1_noise_r
 
 def test_tiles_match_the_whole_solve_without_seams(rt):
     psf, y = scene()
-    whole = cm2cl.reconstruct(y, psf, **KW, psf_refine=0).volume.astype(np.float64)
-    tiled, info = reconstruct_tiled(y, psf, (48, 60), **KW)
+    # 800 iterations: each tile's solve rebalances its own penalties (x1.5 steps to iteration 100), so the
+    # paths part early and meet again near the answer (seen 4.9% apart at 80 iterations, 0.7% at 800)
+    kw = {**KW, "max_iter": 800}
+    whole = cm2cl.reconstruct(y, psf, **kw, psf_refine=0).volume.astype(np.float64)
+    tiled, info = reconstruct_tiled(y, psf, (48, 60), **kw)
     assert info["tiles"] == 4 and info["halo"] == info["reach"] and info["reach"][0] <= 12
     assert info["l1"] == pytest.approx(cm2cl.reconstruct(y, psf, **{**KW, "max_iter": 1}, psf_refine=0).info["l1"], rel=1e-6)
     # inside the tiles, away from the sensor's edge (where both solves see the same unknown boundary
-    # differently padded): the tiled volume is the whole solve's within 1.5% (seen: 0.5%; the halo keeps
+    # differently padded): the tiled volume is the whole solve's within 1.5% (seen: 0.7%; the halo keeps
     # the windows' own edges out, but ADMM on another grid does not give the same iterates)
     e = 8
     a, b = tiled[:, e:-e, e:-e], whole[:, e:-e, e:-e]
@@ -67,7 +70,7 @@ def test_tiles_match_the_whole_solve_without_seams(rt):
     # by its own maximum, weights from its own noise estimate) differ from the whole solve far more
     own = np.zeros_like(tiled, dtype=np.float64)
     for ((r0, r1), (c0, c1)) in [((0, 48), (0, 60)), ((0, 48), (60, 120)), ((48, 96), (0, 60)), ((48, 96), (60, 120))]:
-        own[:, r0:r1, c0:c1] = cm2cl.reconstruct(y[r0:r1, c0:c1], psf[:, 24:72, 30:90], **KW, psf_refine=0).volume
+        own[:, r0:r1, c0:c1] = cm2cl.reconstruct(y[r0:r1, c0:c1], psf[:, 24:72, 30:90], **kw, psf_refine=0).volume
     err_own = np.linalg.norm(own[:, e:-e, e:-e] - b) / np.linalg.norm(b)
     assert err_own > 3 * err, (err_own, err)
 

@@ -28,7 +28,7 @@ ABS_FRACTION = 1e-3
 #: suite passed as many scenes as at 1 and its seeds 11-13 more (docs/iterations.md, stop 50)
 DATA_PENALTY = 0.2
 #: the largest factor of one adaptive rebalancing (adapt_max_step's default): at mu_v = 0.2 steps of x3
-#: overshot mu_w to 81x the spectral mean on DiffuserCam 3D binned 2x (835 iterations to 1%, 546 at x1.5)
+#: overshot mu_w to 81x the spectral mean on DiffuserCam 3D binned 2x (835 iterations to 1%; 545-583 at x1.5)
 ADAPT_MAX_STEP = 1.5
 
 
