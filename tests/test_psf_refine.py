@@ -134,6 +134,8 @@ def test_rounds_keep_their_penalties_and_the_final_solve_takes_the_default(rt):
     rec = cm2cl.reconstruct(y, psf, **kw)
     assert [r["mu_v"] for r in rec.info["psf_refine"]["per_round"]] == [R.ROUND_PENALTIES["mu_v"]] * 2 == [1.0] * 2
     assert rec.info["initial_penalties"]["mu_v"] == DATA_PENALTY
+    assert [r["adapt_max_step"] for r in rec.info["psf_refine"]["per_round"]] == [3.0, 3.0]
+    assert rec.info["adapt_max_step"] == ADAPT_MAX_STEP == 1.5
     steps = [rec.history[f"mu_{n}"][1:] / rec.history[f"mu_{n}"][:-1] for n in ("v", "w")]
     assert max(float(np.max(np.maximum(q, 1 / q))) for q in steps) <= ADAPT_MAX_STEP * (1 + 1e-6)
     assert R.round_params(ADMMParams(adapt_max_step=2.0)) == ADMMParams(adapt_max_step=2.0, mu_v=1.0)

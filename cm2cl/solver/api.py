@@ -265,7 +265,8 @@ def _refined(solve, y, psf, weights, prm, padded_shape, x0):
         else:
             h = h_new
         rounds.append({"iterations": rec.iterations, "residual": misfit, "l1_scale": scale, "depth_nodes": nodes,
-                       "mu_v": rec.info["initial_penalties"]["mu_v"], "kernels": R.kernel_summary(k),
+                       "mu_v": rec.info["initial_penalties"]["mu_v"], "adapt_max_step": rec.info["adapt_max_step"],
+                       "kernels": R.kernel_summary(k),
                        "kept": bool(empty)})
         gains = [q["gain"] for q in rounds[-1]["kernels"]]
         log.info("PSF refinement round %d of %d: %d iterations, misfit %.4f before it; %d kernels, gains %.2f-%.2f",

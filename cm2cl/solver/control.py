@@ -143,6 +143,8 @@ class Control:
         self.l1, self.tv = scale.weights(p)
         self.weights = {"data": 1.0, "l1": self.l1, "tv": self.tv}
         self.mu0 = {name: scale.penalty(p, name, kind) for name, kind in splits}
+        #: the largest factor of one rebalancing: the given adapt_max_step, or ADAPT_MAX_STEP
+        self.max_step = float(p.adapt_max_step if p.adapt_max_step is not None else ADAPT_MAX_STEP)
         self.mu = dict(self.mu0)
         #: splits whose term is active: a split z = x without a weight (TV off) carries no term, z = x
         #: + dual / mu = x exactly, and its penalty is neither adapted nor part of the stopping rule
@@ -180,9 +182,8 @@ class Control:
                 return mu
             q = _ratio(r, s)
             if q > p.adapt_ratio or q < 1.0 / p.adapt_ratio:
-                most = p.adapt_max_step if p.adapt_max_step is not None else ADAPT_MAX_STEP
-                step = np.sqrt(q) if np.isfinite(q) else most
-                mu *= float(np.clip(step, 1.0 / most, most))
+                step = np.sqrt(q) if np.isfinite(q) else self.max_step
+                mu *= float(np.clip(step, 1.0 / self.max_step, self.max_step))
         return float(np.clip(mu, mu0 / p.mu_range, mu0 * p.mu_range))
 
     def _relative(self, name: str, st: SplitStats, r: float, s: float, floor: float) -> tuple[float, float]:
@@ -242,5 +243,5 @@ class Control:
                 "l1_rule": {"rule": rule, "voxels": sc.voxels, "ratio": self.l1 / sc.noise_x if sc.noise_x else None,
                             "noise_x": sc.noise_x, "plane_power": p.l1_plane_power},
                 "noise_sigma": self.scale.noise_sigma, "noise_x": self.scale.noise_x, "spectral_mean": self.scale.spectral_mean,
-                "initial_penalties": {f"mu_{n}": mu for n, mu in self.mu0.items()},
+                "initial_penalties": {f"mu_{n}": mu for n, mu in self.mu0.items()}, "adapt_max_step": self.max_step,
                 "penalty_policy": self.p.penalty, "tol": self.p.tol, "tol_change": self.p.tol_change}
