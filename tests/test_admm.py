@@ -274,17 +274,19 @@ def test_row_kernel_layouts_match_the_reference(rt, dtype, vw, rows, P):
 
 
 def test_plane_weighted_l1_matches_the_twin(rt):
-    """l1_plane_power: plane i's l1 weight is ||h_i||^q / mean ||h_j||^q, in the device kernel and in the
-    float64 twin alike (planes blurred by different amounts, so their norms differ by ~4x)."""
+    """l1_plane_power: plane i's l1 weight is ||h_i||^q (sum h_i)^(1-q) / mean (the same), in the device kernel
+    and in the float64 twin alike (planes blurred by different amounts, so their norms differ by ~4x, and
+    dimmed unequally, so their light differs by 3x)."""
     dtype, _, tol = precision(rt)
     psf, _, y = bead_problem(3)
-    psf = np.stack([gaussian_filter(p, s) for p, s in zip(psf, (0.5, 1.0, 1.5, 2.5))])
+    light = np.array([1.0, 0.6, 0.8, 0.33])
+    psf = np.stack([gaussian_filter(p, s) * a for p, s, a in zip(psf, (0.5, 1.0, 1.5, 2.5), light)])
     kw = dict(l1=2e-3, tv=5e-4, max_iter=25, tol=0, l1_plane_power=2.0, background="none")
     r0 = ref.admm(y, psf, padded_shape=(64, 80), **kw)
     r1 = reconstruct(y, psf, dtype=dtype, padded_shape=(64, 80), max_slab_planes=3, **kw, psf_refine=0)
     err = np.linalg.norm(r1.volume_padded - r0.volume_padded) / np.linalg.norm(r0.volume_padded)
     assert err < tol, err
-    n2 = np.sum(psf.reshape(4, -1) ** 2, axis=1)
+    n2 = np.sum(psf.reshape(4, -1) ** 2, axis=1) / psf.reshape(4, -1).sum(axis=1)   # q = 2: ||h||^2 / sum h
     np.testing.assert_allclose(r1.info["l1_plane_weights"], n2 / n2.mean(), rtol=1e-9)
     # the weights matter: the unweighted solve differs
     r2 = reconstruct(y, psf, dtype=dtype, padded_shape=(64, 80), **{**kw, "l1_plane_power": 0.0}, psf_refine=0)

@@ -185,6 +185,21 @@ def test_float32_solves_any_finite_input_scale(rt, s_psf, s_y):
     assert np.linalg.norm(v - base.volume) <= 1e-5 * np.linalg.norm(base.volume)
 
 
+@pytest.mark.parametrize("q", [0.0, 0.5, 1.0, 2.0])
+def test_a_planes_l1_weight_scales_with_the_plane(rt, q):
+    """Dimming PSF plane i by a_i (a stack attenuated with depth, or calibrated with a fading source) multiplies
+    its l1 weight by a_i for every plane power q, so that the problem is the same with plane i's answer scaled by
+    1 / a_i: ||h_i||^q alone would scale it by a_i^q, and a dimmed deep plane would be shrunk a_i^(q-1) times
+    harder than the same plane undimmed. The weights are read back from the record."""
+    psf, _, y = bead_problem(3)
+    a = np.array([1.0, 0.5, 0.25, 0.13])
+    kw = dict(max_iter=1, padded_shape=(64, 80), l1_plane_power=q, psf_refine=0)
+    w0 = np.asarray(cm2cl.reconstruct(y, psf, **kw).info["l1_plane_weights"])
+    w1 = np.asarray(cm2cl.reconstruct(y, psf * a[:, None, None], **kw).info["l1_plane_weights"])
+    ratio = w1 / w0
+    np.testing.assert_allclose(ratio / ratio[0], a, rtol=1e-9)   # the twin's: tests/test_admm.py
+
+
 def test_default_l1_is_the_universal_threshold_with_plane_weights(rt):
     """l1 = sqrt(2 ln N) x noise_x, N the voxels of the padded volume (device and twin alike), each
     plane's weight ~ ||h_i||^(1/2) (halfway between its back-projected noise, ||h_i||, and one weight for
@@ -198,7 +213,9 @@ def test_default_l1_is_the_universal_threshold_with_plane_weights(rt):
     rule = rec.info["l1_rule"]
     assert rule["voxels"] == n and rule["rule"].startswith("universal") and rule["ratio"] == pytest.approx(np.sqrt(2 * np.log(n)))
     assert rule["plane_power"] == 0.5
-    roots = np.sqrt(np.sqrt((psf.reshape(psf.shape[0], -1) ** 2).sum(axis=1)))
+    flat = psf.reshape(psf.shape[0], -1)
+    assert np.ptp(flat.sum(axis=1)) < 1e-6 * flat.sum()   # planes of equal light: the weight is ||h_i||^(1/2)
+    roots = np.sqrt(np.sqrt((flat ** 2).sum(axis=1)))
     assert np.ptp(roots) > 0.05 * roots.mean()  # the planes' weights differ, so the power is seen
     np.testing.assert_allclose(rec.info["l1_plane_weights"], roots / roots.mean(), rtol=1e-9)
     twin = ref.admm(y, psf, padded_shape=(64, 80), max_iter=3)

@@ -58,8 +58,13 @@ def admm(y, psf, params=None, padded_shape=None, dtype=np.float64, workers=None,
         x = (np.maximum(np.asarray(x0, np.float64), 0) * (s_y / s_h)).astype(dt)
     ctl = Control(p, ProblemScale.of(np.where(wts > 0, y * s_y, 0.0), float(np.sum((psf * s_h) ** 2)), nz, nz * P[0] * P[1]),
                   callback)
-    # each plane's l1 weight: ||h_i||^q / mean ||h_j||^q of the normalised stack (all ones for q = 0)
-    hn = np.sqrt(np.sum((psf * s_h).reshape(nz, -1) ** 2, axis=1)) ** float(p.l1_plane_power)
+    # each plane's l1 weight: ||h_i||^q (sum h_i)^(1 - q), over its mean (ones for q = 0 and planes of equal light)
+    q = float(p.l1_plane_power)
+    flat = psf.reshape(nz, -1)
+    light = np.abs(flat.sum(axis=1))
+    hn = np.sqrt(np.sum(flat ** 2, axis=1)) ** q
+    if q != 1:
+        hn = hn * np.maximum(light, 1e-12 * light.max()) ** (1 - q)
     if p.background == "model":   # knots a quarter of the PSF support apart, within [8 px, the sensor]
         spacing = p.background_scale_px or min(max(0.25 * max(support_extent(psf)), 8.0), max(M))
         data = LeastSquaresBackground(cty, mask, ys, wts, M, dt, spacing)

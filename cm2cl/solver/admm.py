@@ -197,9 +197,12 @@ class ADMMSolver:
         # the normalised stack the solver sees is psf x prescale x psf_scale: its sums from the planes'
         (y0, y1), (x0, x1) = psf_support(psf)   # (scale-free)
         self.psf_support_px = (y1 - y0 + 1, x1 - x0 + 1)
-        sq = np.array([np.sum(np.square(np.asarray(h, np.float64))) for h in psf])
+        sq, light = np.zeros(self.nz), np.zeros(self.nz)
+        for z, h in enumerate(psf):   # a plane at a time: the stack may be a memory map
+            h = np.asarray(h, np.float64)
+            sq[z], light[z] = np.sum(np.square(h)), np.sum(h)
         self.spectral_mean = float((pre * self.psf_scale) ** 2 * np.sum(sq))
-        self.l1_plane_weights = plane_weights(np.sqrt(sq), self.p.l1_plane_power)
+        self.l1_plane_weights = plane_weights(np.sqrt(sq), self.p.l1_plane_power, light)
         self.psf_scale *= self.psf_prescale  # the whole scale from the caller's PSF
         # buffers, plus the FFT libraries' scratch of the plans each part uses
         self.allocated_bytes = sum(part.device_bytes + part.row.partials.nbytes + part.out.nbytes

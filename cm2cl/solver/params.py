@@ -35,7 +35,8 @@ PRESETS = {
 #: priors for kinds of samples (``--prior``; docs/quality.md, docs/paper_scenes.md): 'default' (l1 at the
 #: universal threshold, plane weights ~ ||h_i||^(1/2), TV off: on the quality suite the best for beads and fibres
 #: alike);
-#: 'points' (TV off, every plane's l1 alike: the former prior); 'points-weighted': each plane's l1 weight ~ ||h_i||^2;
+#: 'points' (TV off, each plane's l1 ~ its light: the former prior); 'points-weighted': each plane's l1 weight
+#: ~ ||h_i||^2 / sum h_i;
 #: 'extended': TV at 5 x the noise level as well, for smooth extended structure, and the PSF refined by one kernel
 #: common to every lenslet: kernels per lenslet trade shifts with extended objects (on fibres with every mismatch,
 #: the suite's seed and seeds 11, 12, the energy near the truth was 0.26 / 0.16 / 0.12 with 'auto' and
@@ -81,14 +82,16 @@ class ADMMParams:
     tv_noise_ratio: float = _param(
         0.0, _NONNEG, "Default TV weight (when tv is None) relative to the volume-domain noise level.")
     # q = 1 follows noise alone (plane i's back-projected noise is sigma ||h_i||); q = 0 a model error the
-    # frame's smooth misfit carries, whose back-projection follows a plane's light, the same in every plane.
-    # Real frames carry both: q = 1/2 passed more of the quality suite's frames on four seeds than either
-    # (docs/psf_refine.md, "l1's plane weights"); q = 2 shrinks an isolated voxel alike in every plane
+    # frame's smooth misfit carries, whose back-projection follows a plane's light, sum h_i (the same in every
+    # plane of a stack normalised per plane). Real frames carry both: q = 1/2 passed more of the quality suite's
+    # frames on four seeds than either (docs/psf_refine.md, "l1's plane weights"); q = 2 shrinks an isolated
+    # voxel alike in every plane. Weights of degree 1 in each plane's scale for every q ("Planes of unequal light")
     l1_plane_power: float = _param(
         0.5, {"type": "float", "min": 0, "max": 4},
-        "Plane i's l1 weight is l1 x ||h_i||^q / mean_j ||h_j||^q, q this power: 1 makes each plane's weight follow "
-        "its back-projected noise sigma ||h_i||; 0 weighs all planes alike; 0.5 (default) is halfway, for "
-        "frames with noise and model error; 2 shrinks a point source equally in every plane "
+        "Plane i's l1 weight is l1 x ||h_i||^q (sum h_i)^(1-q) / mean_j (the same), q this power: 1 makes each "
+        "plane's weight follow its back-projected noise sigma ||h_i||; 0 its light (all planes alike where each "
+        "holds the same light); 0.5 (default) is halfway, for frames with noise and model error; 2 shrinks a "
+        "point source equally in every plane. A plane scaled by a gets a weight a times larger for every q "
         "(info['l1_plane_weights']).", flag=True)
     tv_axial_weight: float = _param(
         1.0, _POS, "Weight of axial differences in TV relative to lateral ones (non-cubic voxels: e.g. dx / dz).",

@@ -9,10 +9,19 @@ from ..control import SplitStats
 from .base import IdentityTerm
 
 
-def plane_weights(norms, power: float) -> np.ndarray:
-    """Each plane's weight in the l1 term: ||h_i||^power / mean_j ||h_j||^power (ones for power 0), from
-    the planes' norms ``norms`` (any common scale)."""
+def plane_weights(norms, power: float, light=None) -> np.ndarray:
+    """Each plane's weight in the l1 term: c_i = ||h_i||^q (sum h_i)^(1 - q) / mean_j (the same), q = ``power``,
+    from the planes' norms ``norms`` and their light ``light`` (sums; any common scales; None: equal light).
+
+    Both factors scale with the plane: scaling plane i of the PSF by a scales c_i by a, so that plane i's
+    answer scales by 1 / a and nothing else changes (a stack dimmed with depth, ``scattering_length_um``, is
+    the plain problem with each plane's answer brightened). ||h_i|| is what noise back-projected through the
+    plane scales with (q = 1), sum h_i what a smooth misfit back-projected through it scales with (q = 0,
+    every plane alike where the planes hold the same light)."""
     c = np.asarray(norms, np.float64) ** float(power)
+    if light is not None and power != 1:
+        lt = np.abs(np.asarray(light, np.float64))
+        c = c * np.maximum(lt, 1e-12 * lt.max()) ** (1.0 - float(power))
     return c / np.mean(c)
 
 
