@@ -33,8 +33,8 @@ PRESETS = {
 }
 
 #: priors for kinds of samples (``--prior``; docs/quality.md, docs/paper_scenes.md): 'default' (l1 at the
-#: universal threshold, plane weights ~ ||h_i||^(1/2), TV off: on the quality suite the best for beads and fibres
-#: alike);
+#: universal threshold, plane weights ~ (||h_i|| sum h_i)^(1/2), TV off: on the quality suite the best for beads
+#: and fibres alike);
 #: 'points' (TV off, each plane's l1 ~ its light: the former prior); 'points-weighted': each plane's l1 weight
 #: ~ ||h_i||^2 / sum h_i;
 #: 'extended': TV at 5 x the noise level as well, for smooth extended structure, and the PSF refined by one kernel
