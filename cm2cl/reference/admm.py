@@ -62,9 +62,7 @@ def admm(y, psf, params=None, padded_shape=None, dtype=np.float64, workers=None,
     q = float(p.l1_plane_power)
     flat = psf.reshape(nz, -1)
     light = np.abs(flat.sum(axis=1))
-    hn = np.sqrt(np.sum(flat ** 2, axis=1)) ** q
-    if q != 1:
-        hn = hn * np.maximum(light, 1e-12 * light.max()) ** (1 - q)
+    hn = np.sqrt(np.sum(flat ** 2, axis=1)) ** q * np.maximum(light, 1e-12 * light.max()) ** (1 - q)
     if p.background == "model":   # knots a quarter of the PSF support apart, within [8 px, the sensor]
         spacing = p.background_scale_px or min(max(0.25 * max(support_extent(psf)), 8.0), max(M))
         data = LeastSquaresBackground(cty, mask, ys, wts, M, dt, spacing)

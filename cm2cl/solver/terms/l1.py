@@ -19,7 +19,7 @@ def plane_weights(norms, power: float, light=None) -> np.ndarray:
     plane scales with (q = 1), sum h_i what a smooth misfit back-projected through it scales with (q = 0,
     every plane alike where the planes hold the same light)."""
     c = np.asarray(norms, np.float64) ** float(power)
-    if light is not None and power != 1:
+    if light is not None:
         lt = np.abs(np.asarray(light, np.float64))
         c = c * np.maximum(lt, 1e-12 * lt.max()) ** (1.0 - float(power))
     return c / np.mean(c)
