@@ -9,7 +9,7 @@ import pytest
 
 from cm2cl import io
 from cm2cl.analysis import quality as Q
-from cm2cl.analysis.particles import FWHM_PER_SIGMA, particle_table, summary
+from cm2cl.analysis.particles import FWHM_PER_SIGMA, SIGMA_MIN_VOX, fit_particle, particle_table, summary
 from cm2cl.analysis.views import lenslet_grid, pcc_curves, view_configurations
 from cm2cl.cli import main
 
@@ -63,6 +63,20 @@ def test_particle_fwhm_of_known_gaussians():
     np.testing.assert_allclose(got, sorted(centres), atol=0.05)
     s = summary(rows, key=lambda r: "left" if r["x"] < 32 else "right")
     assert s["all"]["n_fit"] == 3 and s["regions"]["left"]["n"] == 2 and s["regions"]["right"]["n"] == 1
+
+
+def test_a_one_voxel_particle_fits_at_the_floor():
+    """A particle one voxel wide (a spike on a flat floor) fits at the narrowest Gaussian, SIGMA_MIN_VOX in
+    every axis: the width docs/paper_comparison.md reads as "reconstructed into one voxel". A particle of
+    sigma 0.6 voxel is resolved above it."""
+    vol = np.full((9, 15, 15), 0.01)
+    vol[4, 7, 7] = 1.0
+    f = fit_particle(vol, (4, 7, 7))
+    assert f["sigma_lateral_vox"] == pytest.approx(SIGMA_MIN_VOX, abs=1e-3)
+    assert f["sigma_axial_vox"] == pytest.approx(SIGMA_MIN_VOX, abs=1e-3)
+    zz, yy, xx = np.meshgrid(*(np.arange(n, dtype=float) for n in vol.shape), indexing="ij")
+    g = np.exp(-0.5 * ((zz - 4) ** 2 + (yy - 7) ** 2 + (xx - 7) ** 2) / 0.6 ** 2)
+    assert fit_particle(g, (4, 7, 7))["sigma_lateral_vox"] == pytest.approx(0.6, rel=0.02)
 
 
 def test_cli_analyze_pcc_and_particles(tmp_path, capsys):

@@ -15,6 +15,8 @@ from .emitters import find_emitters
 
 #: FWHM of a Gaussian per sigma
 FWHM_PER_SIGMA = 2.0 * math.sqrt(2.0 * math.log(2.0))
+#: the fit's narrowest Gaussian (voxels): a particle one voxel wide fits at this sigma, FWHM 0.71 voxel
+SIGMA_MIN_VOX = 0.3
 #: half window (z, y, x) in voxels of each particle's fit
 HALF_WINDOW = (3, 5, 5)
 
@@ -38,7 +40,7 @@ def fit_particle(volume, index, half_window=HALF_WINDOW) -> dict:
     base = float(np.percentile(win, 10))
     p0 = [max(peak - base, 1e-12), *(float(v) for v in index), 1.0, 1.5, base]
     span = [max(b - a, 1) for a, b in zip(lo, hi)]
-    lb = [0.0, lo[0] - 0.5, lo[1] - 0.5, lo[2] - 0.5, 0.3, 0.3, -abs(peak)]
+    lb = [0.0, lo[0] - 0.5, lo[1] - 0.5, lo[2] - 0.5, SIGMA_MIN_VOX, SIGMA_MIN_VOX, -abs(peak)]
     ub = [10 * abs(peak) + 1e-12, hi[0] - 0.5, hi[1] - 0.5, hi[2] - 0.5, 2.0 * span[0], 2.0 * max(span[1:]), abs(peak)]
     p0 = list(np.clip(p0, np.array(lb) + 1e-9, np.array(ub) - 1e-9))
     r = optimize.least_squares(lambda p: (_gauss(p, zz, yy, xx) - win).ravel(), p0, bounds=(lb, ub), x_scale="jac")
