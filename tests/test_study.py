@@ -102,3 +102,24 @@ def test_fit_optics_blur_section_says_which_paper_measurements_a_blur_meets():
     for bad in ("x", "1:2", "-1", "nan", "1:nan"):
         with pytest.raises(ValueError, match="--blur"):
             F._parse_blurs(bad)
+
+
+def test_heldout_psf_family_is_what_its_docstring_says():
+    """tools/heldout_psf.py's PSF: every plane holds unit light (equal gains), the sharpest plane is the focus
+    (plane 6), the spots grow with defocus on both sides, and the outer spots move apart with depth."""
+    import numpy as np
+
+    import heldout_psf as H
+
+    psf = H.hex_psf(12, (80, 96))
+    np.testing.assert_allclose(psf.sum(axis=(1, 2)), 1.0, rtol=1e-6)
+    sharp = (psf ** 2).sum(axis=(1, 2))
+    assert int(np.argmax(sharp)) == 6 and np.all(np.diff(sharp[6:]) < 0) and np.all(np.diff(sharp[:7]) > 0)
+    # the lenslets right of the axis: their centroid moves outward with depth
+    right = psf[:, :, 48 + 12:]
+    xs = np.arange(right.shape[2])
+    cx = [(p.sum(axis=0) * xs).sum() / p.sum() for p in right]
+    assert np.all(np.diff(cx) > 0)
+    # gains scale the lenslets' light, a blur keeps each plane's light
+    g = H.hex_psf(3, (80, 96), gains=[0.5] * 7, blur=0.7)
+    np.testing.assert_allclose(g.sum(axis=(1, 2)), 0.5, rtol=1e-3)
