@@ -126,7 +126,8 @@ def write_md(rows, path: Path, argv, seconds: float) -> None:
     rt = get_runtime(None)
     lines = ["# Bead frames through a held-out PSF family", "",
              f"Made by `python tools/heldout_psf.py{' ' + ' '.join(argv) if argv else ''}` in {seconds / 60:.1f} min "
-             f"on {rt.caps.platform} ({rt.caps.name}), {platform.machine()}, one run. " + __doc__.split("\n\n")[2].replace("\n", " "),
+             f"on {rt.caps.platform} ({rt.caps.name}), {platform.machine()}, one run. "
+             + __doc__.split("\n\n")[2].replace("\n", " "),
              "", "| seed | frame | recall | false / 10 | axial err | iterations | PSF refinement | targets | "
              "missed beads: plane (peak / brightest) |", "|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
