@@ -29,6 +29,7 @@ def test_the_truth_scores_perfectly(sigma):
     beads, vol = beads_and_volume(sigma=sigma)
     s = Q.score_beads(vol, beads)
     assert (s["n_true"], s["n_detected"], s["n_matched"], s["false_maxima"]) == (20, 20, 20, 0)
+    assert s["matched"] == list(range(20))
     assert s["recall"] == 1.0 and s["f1"] == 1.0 and s["false_per_10"] == 0.0
     assert s["axial_err"] == pytest.approx(0.0, abs=1e-12)
     assert s["lateral_err"] == pytest.approx(0.0, abs=1e-9)
@@ -44,7 +45,7 @@ def test_a_bead_two_planes_off_is_lost_and_false_one_plane_off_is_matched():
     moved = vol.copy()
     moved[z + dz, y, x], moved[z, y, x] = vol[z, y, x], 0.0
     s = Q.score_beads(moved, beads)
-    assert s["n_matched"] == 19 and s["recall"] == pytest.approx(0.95)
+    assert s["n_matched"] == 19 and s["recall"] == pytest.approx(0.95) and s["matched"] == list(range(1, 20))
     assert s["false_maxima"] == 1 and s["false_per_10"] == pytest.approx(0.5)
     assert s["axial_err"] == pytest.approx(0.0, abs=1e-12)
     # one plane off: still matched (+-1 plane), the mean axial error is 1 / 20

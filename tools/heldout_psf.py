@@ -32,7 +32,6 @@ sys.path.insert(0, str(ROOT))
 
 import cm2cl  # noqa: E402
 from cm2cl.analysis import quality as Q  # noqa: E402
-from cm2cl.analysis.emitters import find_emitters, match_emitters  # noqa: E402
 
 NZ, SHAPE, FOCUS = 20, (160, 192), 6.0
 #: the four frames of a seed: (label, scene keywords)
@@ -101,11 +100,8 @@ def run(seeds, log=print) -> list[dict]:
             rec = cm2cl.reconstruct(y, psf)
             vol = np.asarray(rec.volume, np.float64)
             s = Q.score_beads(vol, beads)
-            det = find_emitters(vol, threshold=Q.DETECT_REL, min_distance_vox=(1, 2, 2))
-            m = match_emitters(det["index"], beads, Q.LATERAL_TOL_VOX, Q.AXIAL_TOL_PLANES)
-            found = {int(j) for _, j in m["pairs"]}
             missed = []
-            for j in sorted(set(range(len(beads))) - found):
+            for j in sorted(set(range(len(beads))) - set(s["matched"])):
                 z, r, c = (int(round(v)) for v in beads[j])
                 near = vol[max(z - 1, 0):z + 2, max(r - 2, 0):r + 3, max(c - 2, 0):c + 3]
                 missed.append((z, float(near.max() / vol.max())))

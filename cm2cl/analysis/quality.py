@@ -63,7 +63,8 @@ def score_beads(volume, true_zyx, threshold: float = DETECT_REL, lateral_tol: fl
       ``false_per_10`` = 10 x false_maxima / n_true;
     - ``axial_err`` = mean |detected - true plane| over the matched pairs (planes; NaN if none matched),
       ``lateral_err`` = their mean lateral distance (voxels);
-    - ``f1`` = 2 n_matched / (n_true + n_detected), the one number recall and false maxima make together.
+    - ``f1`` = 2 n_matched / (n_true + n_detected), the one number recall and false maxima make together;
+    - ``matched``: the indices of the true beads that were matched (the rest were missed).
     """
     true = np.asarray(true_zyx, dtype=float).reshape(-1, 3)
     if len(true) == 0:
@@ -76,7 +77,7 @@ def score_beads(volume, true_zyx, threshold: float = DETECT_REL, lateral_tol: fl
             "false_maxima": false, "false_per_10": 10.0 * false / n_t,
             "axial_err": float(np.mean(np.abs(m["axial_error_um"]))) if n_m else float("nan"),
             "lateral_err": float(np.mean(m["lateral_error_um"])) if n_m else float("nan"),
-            "f1": 2.0 * n_m / (n_t + n_d)}
+            "f1": 2.0 * n_m / (n_t + n_d), "matched": sorted(int(j) for _, j in m["pairs"])}
 
 
 def nrmse(volume, truth) -> float:
