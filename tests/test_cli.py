@@ -69,6 +69,8 @@ def test_reconstruct_bad_input_writes_nothing(rt, tmp_path, capsys):
         (["reconstruct", str(meas), "--psf", str(psf), "--offset", "dark"], "--offset: expected"),
         (["reconstruct", str(meas), "--psf", str(psf), "--offset", "nan"], "--offset: expected a finite number"),
         (["reconstruct", str(meas), "--psf", str(psf), "--psf-offset", "inf"], "--psf-offset: expected a finite"),
+        (["reconstruct", str(meas), "--psf", str(psf), "--offset", "-5"], "--offset: a dark level is >= 0 ADU"),
+        (["reconstruct", str(meas), "--psf", str(psf), "--psf-offset", "-0.5"], "--psf-offset: a dark level is >= 0"),
     ]
     for argv, msg in cases:
         out = tmp_path / "out.tif"

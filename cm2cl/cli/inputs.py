@@ -61,7 +61,7 @@ def layout_options(args) -> dict:
 
 
 def parse_offset(text: str, option: str = "--offset"):
-    """An offset option: None ('none'), 'auto' or a finite number."""
+    """An offset option: None ('none'), 'auto' or a finite number >= 0 (a dark level in ADU)."""
     if text == "none":
         return None
     if text == "auto":
@@ -72,6 +72,8 @@ def parse_offset(text: str, option: str = "--offset"):
         raise InputError(f"{option}: expected 'none', 'auto' or a number, got {text!r}") from exc
     if not np.isfinite(value):
         raise InputError(f"{option}: expected a finite number, got {text!r}")
+    if value < 0:   # subtracting it would add light to every pixel: a sign slip, not a camera's black level
+        raise InputError(f"{option}: a dark level is >= 0 ADU, got {text!r}")
     return value
 
 
