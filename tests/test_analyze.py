@@ -160,6 +160,17 @@ def test_sbr_of_known_levels_and_the_command(tmp_path, capsys):
     assert rec["patch_px"] == 80 and rec["mean_sbr"] == pytest.approx(1.5, rel=0.01)
     with open(tmp_path / "s" / "sbr.csv") as f:
         assert len(list(csv.reader(f))) == 1 + 9
+    capsys.readouterr()
+    # a patch the image cannot hold, or a negative one, is named by its option in one line, before any output
+    for flag, value, msg in (("--patch-um", "-3", "--patch-um: must be a positive number, got -3"),
+                             ("--patch-um", "2000", "--patch-um: a patch of 2000 um (5 um pixels) is 400 px; it must "
+                                                    "be 2 px to the image's 240 px"),
+                             ("--patch-px", "1", "--patch-px: a patch of 1 px is 1 px")):
+        out = tmp_path / f"bad{value}"
+        assert main(["analyze", "sbr", str(tmp_path / "raw.ome.tif"), "-o", str(out), flag, value]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and msg in err[0], err
+        assert not out.exists()
 
 
 def _particle_volume(centres, shape=(30, 80, 80), sz=1.5, sr=1.2, amps=None, noise=0.002, seed=3):

@@ -408,8 +408,10 @@ def _sbr(args, img, meta) -> dict:
     if args.sigmas <= 0:
         raise InputError(f"--sigmas: {args.sigmas} must be positive")
     if args.patch_px is not None:
-        n, how = int(args.patch_px), f"{args.patch_px} px"
+        n, how, flag = int(args.patch_px), f"{args.patch_px} px", "--patch-px"
     else:
+        _positive(args.patch_um, "--patch-um")
+        flag = "--patch-um"
         extra = meta.get("extra") or {}
         px = extra.get("object_pixel_um") or ((meta.get("voxel_size_um") or [None])[-1]
                                               if meta.get("unit") == "um" else None)
@@ -418,7 +420,7 @@ def _sbr(args, img, meta) -> dict:
                              "--patch-px")
         n, how = int(round(args.patch_um / float(px))), f"{args.patch_um:g} um ({px:g} um pixels)"
     if n < 2 or n > min(img.shape):
-        raise InputError(f"patch of {n} px: must be 2 px to the image's {min(img.shape)} px")
+        raise InputError(f"{flag}: a patch of {how} is {n} px; it must be 2 px to the image's {min(img.shape)} px")
     img = np.asarray(img, np.float64)
     sbr_map, mean, mask = raw_sbr(img, n, args.sigmas)
     rows = [[i, j, i * n, j * n, None if not np.isfinite(v) else float(v)]
