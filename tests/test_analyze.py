@@ -9,7 +9,8 @@ import pytest
 
 from cm2cl import io
 from cm2cl.analysis import quality as Q
-from cm2cl.analysis.particles import FWHM_PER_SIGMA, SIGMA_MIN_VOX, fit_particle, particle_table, summary
+from cm2cl.analysis.particles import (FWHM_PER_SIGMA, SIGMA_MIN_VOX, fit_particle, measure_particle, particle_table,
+                                      summary)
 from cm2cl.analysis.views import lenslet_grid, pcc_curves, view_configurations
 from cm2cl.cli import main
 
@@ -74,9 +75,18 @@ def test_a_one_voxel_particle_fits_at_the_floor():
     f = fit_particle(vol, (4, 7, 7))
     assert f["sigma_lateral_vox"] == pytest.approx(SIGMA_MIN_VOX, abs=1e-3)
     assert f["sigma_axial_vox"] == pytest.approx(SIGMA_MIN_VOX, abs=1e-3)
+    assert f["lateral_at_floor"] and f["axial_at_floor"]
     zz, yy, xx = np.meshgrid(*(np.arange(n, dtype=float) for n in vol.shape), indexing="ij")
     g = np.exp(-0.5 * ((zz - 4) ** 2 + (yy - 7) ** 2 + (xx - 7) ** 2) / 0.6 ** 2)
-    assert fit_particle(g, (4, 7, 7))["sigma_lateral_vox"] == pytest.approx(0.6, rel=0.02)
+    fg = fit_particle(g, (4, 7, 7))
+    assert fg["sigma_lateral_vox"] == pytest.approx(0.6, rel=0.02)
+    assert not fg["lateral_at_floor"] and not fg["axial_at_floor"]
+    # one voxel wide laterally, resolved in depth (sigma 1.5 planes): only the lateral width is a bound
+    ax = 0.01 + np.where((yy == 7) & (xx == 7), np.exp(-0.5 * ((zz - 4) / 1.5) ** 2), 0.0)
+    fa = fit_particle(ax, (4, 7, 7))
+    assert fa["lateral_at_floor"] and not fa["axial_at_floor"] and fa["sigma_axial_vox"] == pytest.approx(1.5, rel=0.05)
+    s = summary([measure_particle(ax, (4, 7, 7)), measure_particle(g, (4, 7, 7))])["all"]
+    assert (s["n_fit"], s["n_lateral_at_floor"], s["n_axial_at_floor"]) == (2, 1, 0)
 
 
 def test_cli_analyze_pcc_and_particles(tmp_path, capsys):
@@ -102,7 +112,18 @@ def test_cli_analyze_pcc_and_particles(tmp_path, capsys):
     rec = json.loads((tmp_path / "p" / "analysis.json").read_text())
     assert rec["summary"]["all"]["n_fit"] == 1
     assert rec["summary"]["all"]["fwhm_axial_um"]["median"] == pytest.approx(FWHM_PER_SIGMA * 1.5 * 20.0, rel=0.03)
-    capsys.readouterr()
+    assert rec["summary"]["all"]["n_lateral_at_floor"] == 0 and "floor" not in capsys.readouterr().out
+    # a particle in one voxel laterally: its lateral width is flagged as the fit's floor in the table and the line
+    spike = np.full_like(vol, 1e-3)
+    spike[:, 20, 18] += np.exp(-0.5 * ((np.arange(12) - 5.0) / 1.5) ** 2)
+    io.write_tiff(tmp_path / "spike.ome.tif", spike.astype(np.float32), voxel_size_um=(20.0, 3.0, 3.0))
+    assert main(["analyze", "particles", str(tmp_path / "spike.ome.tif"), "-o", str(tmp_path / "ps")]) == 0
+    out = capsys.readouterr().out
+    assert "at the fit's floor (0.71 voxel" in out and "1 lateral of 1" in out and "axial of" not in out, out
+    with open(tmp_path / "ps" / "particles.csv") as f:
+        table = list(csv.DictReader(f))
+    assert len(table) == 1 and table[0]["lateral_at_floor"] == "True" and table[0]["axial_at_floor"] == "False"
+    assert float(table[0]["fwhm_lateral_um"]) == pytest.approx(FWHM_PER_SIGMA * SIGMA_MIN_VOX * 3.0, rel=0.01)
     # refused in one line before any output: bad level, no scale, a 2D input
     io.write_tiff(tmp_path / "px.ome.tif", vol.astype(np.float32))
     io.write_tiff(tmp_path / "flat.ome.tif", vol[0].astype(np.float32))

@@ -21,6 +21,12 @@ SIGMA_MIN_VOX = 0.3
 HALF_WINDOW = (3, 5, 5)
 
 
+def at_fit_floor(sigma_vox: float) -> bool:
+    """Whether a fitted sigma (voxels) is at the fit's floor :data:`SIGMA_MIN_VOX` (within 1%): the particle
+    fills one voxel along that axis, so its FWHM bounds the width from above and does not measure it."""
+    return float(sigma_vox) <= 1.01 * SIGMA_MIN_VOX
+
+
 def _gauss(p, zz, yy, xx):
     a, z0, y0, x0, sz, sr, b = p
     return a * np.exp(-0.5 * (((zz - z0) / sz) ** 2 + ((yy - y0) ** 2 + (xx - x0) ** 2) / sr ** 2)) + b
@@ -28,8 +34,9 @@ def _gauss(p, zz, yy, xx):
 
 def fit_particle(volume, index, half_window=HALF_WINDOW) -> dict:
     """3D Gaussian fit of the particle at voxel ``index`` (z, y, x; fractional allowed) of ``volume``:
-    centre (voxels), sigmas (voxels), amplitude, background, ``rel_residual`` (RMS misfit / amplitude) and
-    ``ok`` (the fit converged with its sigmas inside the window and its centre within a voxel of the start)."""
+    centre (voxels), sigmas (voxels), amplitude, background, ``rel_residual`` (RMS misfit / amplitude),
+    ``ok`` (the fit converged with its sigmas inside the window and its centre within a voxel of the start) and
+    ``lateral_at_floor`` / ``axial_at_floor`` (:func:`at_fit_floor`)."""
     vol = np.asarray(volume, np.float64)
     c = [int(round(float(v))) for v in index]
     lo = [max(ci - h, 0) for ci, h in zip(c, half_window)]
@@ -50,7 +57,7 @@ def fit_particle(volume, index, half_window=HALF_WINDOW) -> dict:
     ok = bool(r.success and a > 0 and sz < span[0] and sr < max(span[1:]) and moved <= 1.0)
     return {"center_vox": (float(z0), float(y0), float(x0)), "sigma_axial_vox": float(sz),
             "sigma_lateral_vox": float(sr), "amplitude": float(a), "background": float(b),
-            "rel_residual": resid, "ok": ok}
+            "rel_residual": resid, "ok": ok, "lateral_at_floor": at_fit_floor(sr), "axial_at_floor": at_fit_floor(sz)}
 
 
 def noise_floor(volume) -> float:
@@ -68,7 +75,8 @@ def particle_table(volume, voxel_size_um=(1.0, 1.0, 1.0), depths_um=None, thresh
     """One row per particle (brightest first; local maxima above ``threshold`` x the maximum and above the
     noise floor, :func:`noise_floor`): ``z_um, y_um, x_um`` (z from ``depths_um`` when given, else
     index x dz; y, x from the first pixel), ``fwhm_lateral_um``, ``fwhm_axial_um``, ``amplitude``,
-    ``rel_residual``, ``ok`` and the voxel centre ``z, y, x``."""
+    ``rel_residual``, ``ok``, ``lateral_at_floor``, ``axial_at_floor`` (a width at the fit's floor: one voxel)
+    and the voxel centre ``z, y, x``."""
     vol = np.asarray(volume, np.float64)
     if vol.ndim != 3:
         raise InputError(f"volume: expected a (nz, ny, nx) volume, got shape {vol.shape}")
@@ -92,15 +100,19 @@ def measure_particle(volume, index, voxel_size_um=(1.0, 1.0, 1.0), depths_um=Non
     return {"z": z0, "y": y0, "x": x0, "z_um": zu, "y_um": y0 * dy, "x_um": x0 * dx,
             "fwhm_lateral_um": FWHM_PER_SIGMA * f["sigma_lateral_vox"] * dy,
             "fwhm_axial_um": FWHM_PER_SIGMA * f["sigma_axial_vox"] * dz,
-            "amplitude": f["amplitude"], "rel_residual": f["rel_residual"], "ok": f["ok"]}
+            "amplitude": f["amplitude"], "rel_residual": f["rel_residual"], "ok": f["ok"],
+            "lateral_at_floor": f["lateral_at_floor"], "axial_at_floor": f["axial_at_floor"]}
 
 
 def summary(rows, key=None) -> dict:
-    """Median and quartiles of the lateral and axial FWHM over the rows whose fit is ok (``n``, ``n_fit``);
-    with ``key(row) -> region``, the same per region as well."""
+    """Median and quartiles of the lateral and axial FWHM over the rows whose fit is ok (``n``, ``n_fit``), and
+    how many of those widths are at the fit's floor (``n_lateral_at_floor``, ``n_axial_at_floor``: one voxel, a
+    bound); with ``key(row) -> region``, the same per region as well."""
     def stats(rs):
         good = [r for r in rs if r["ok"]]
         out = {"n": len(rs), "n_fit": len(good)}
+        for axis in ("lateral", "axial"):
+            out[f"n_{axis}_at_floor"] = sum(1 for r in good if r.get(f"{axis}_at_floor", False))
         for k in ("fwhm_lateral_um", "fwhm_axial_um"):
             v = np.array([r[k] for r in good])
             out[k] = ({"median": float(np.median(v)), "q1": float(np.percentile(v, 25)),
@@ -158,5 +170,5 @@ def depth_range(rows, field_um, patch_um: float = 800.0, elongation_um: float | 
             "elongation_um": float(elongation_um), "elongation_from": source}
 
 
-__all__ = ["FWHM_PER_SIGMA", "HALF_WINDOW", "depth_range", "fit_particle", "measure_particle", "noise_floor",
-           "particle_table", "summary"]
+__all__ = ["FWHM_PER_SIGMA", "HALF_WINDOW", "SIGMA_MIN_VOX", "at_fit_floor", "depth_range", "fit_particle",
+           "measure_particle", "noise_floor", "particle_table", "summary"]

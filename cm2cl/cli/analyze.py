@@ -385,11 +385,12 @@ def _depth_range(args, vol, meta) -> dict:
 
 
 def _particles(args, vol, meta) -> dict:
-    from ..analysis.particles import summary
+    from ..analysis.particles import FWHM_PER_SIGMA, SIGMA_MIN_VOX, summary
 
     vs, rows = _particle_rows(args, vol, meta)
     s = summary(rows)
-    cols = ["z_um", "y_um", "x_um", "fwhm_lateral_um", "fwhm_axial_um", "amplitude", "rel_residual", "ok"]
+    cols = ["z_um", "y_um", "x_um", "fwhm_lateral_um", "fwhm_axial_um", "amplitude", "rel_residual", "ok",
+            "lateral_at_floor", "axial_at_floor"]
     a = s["all"]
 
     def med(k):
@@ -397,6 +398,10 @@ def _particles(args, vol, meta) -> dict:
 
     say = (f"{args.output}: {a['n']} particles, {a['n_fit']} fitted; median FWHM lateral {med('fwhm_lateral_um')}, "
            f"axial {med('fwhm_axial_um')}")
+    floor = [f"{a[f'n_{axis}_at_floor']} {axis}" for axis in ("lateral", "axial") if a[f"n_{axis}_at_floor"]]
+    if floor:   # a width at the fit's narrowest Gaussian is a particle in one voxel: a bound, not a measurement
+        say += (f"; at the fit's floor ({FWHM_PER_SIGMA * SIGMA_MIN_VOX:.2f} voxel, the particle in one voxel: "
+                f"a bound, not a width): {' and '.join(floor)} of {a['n_fit']}")
     return {"what": "cm2cl analyze particles", "volume": str(args.volume), "threshold": args.threshold,
             "voxel_size_um": list(vs), "summary": s, "table": "particles.csv", "figure": "particles.png",
             "columns": cols, "rows": [[r[c] for c in cols] for r in rows], "png": ("particles", rows), "say": say}
