@@ -44,7 +44,7 @@ if str(ROOT) not in sys.path:
 
 from cm2cl.analysis.lateral import CENTRAL_PCC_LEVEL, high_pcc_diameter_mm, lateral_pcc_map, region_summary  # noqa: E402
 from cm2cl.analysis.mtf import mtf_analysis  # noqa: E402
-from cm2cl.analysis.particles import FWHM_PER_SIGMA, SIGMA_MIN_VOX  # noqa: E402
+from cm2cl.analysis.particles import FWHM_PER_SIGMA, SIGMA_MIN_VOX, at_fit_floor  # noqa: E402
 from cm2cl.analysis.views import lenslet_grid, pcc_curves  # noqa: E402
 from cm2cl.optics import CM2Optics, depth_planes  # noqa: E402
 from cm2cl.optics.characterise import PAPER_PCC_WIDTHS_UM, spot_fwhm_um  # noqa: E402
@@ -473,22 +473,24 @@ def _fwhm_rows(row, res: dict, paper: dict, what: str, sources: str, why_axial: 
         row(f"axial FWHM of reconstructed {what}, {name} region ({r.get('n_fit', 0)} fitted)", ax, a, how, "um",
             why="" if a is not None and abs(a / ax - 1) <= 0.15 else why_axial)
         l_ = (r.get("fwhm_lateral_um") or {}).get("median")
+        unbinned = f"the paper's 5.3-um pixels need the unbinned sensor (`{bin_flag} 1`, over an hour here)"
         if l_ is not None and abs(l_ / lat - 1) <= 0.15:
             why = ""
-        elif res["binning"] > 1:
-            why = (f"one of the binned grid's {res['object_pixel_um']:.1f}-um object pixels is wider than the "
-                   f"paper's profile, so the fit cannot resolve it; the paper's 5.3-um pixels need the unbinned "
-                   f"sensor (`{bin_flag} 1`, over an hour here)")
-        elif l_ is not None and l_ <= 1.01 * FWHM_PER_SIGMA * SIGMA_MIN_VOX * res["object_pixel_um"]:
+        elif l_ is not None and at_fit_floor(l_ / (FWHM_PER_SIGMA * res["object_pixel_um"])):
             why = (f"the fit's floor (sigma {SIGMA_MIN_VOX:g} voxel): the median source is reconstructed into one "
                    f"{res['object_pixel_um']:.2f}-um voxel laterally, so this bounds the width, it does not measure "
                    "it. The model's sources sit on the reconstruction's own PSF (one PSF model for the frame and the "
-                   "stack, no calibration error), and l1 collapses them")
+                   "stack, no calibration error), and l1 collapses them" + (f"; {unbinned}" if res["binning"] > 1
+                                                                              else ""))
+        elif res["binning"] > 1 and res["object_pixel_um"] >= lat:
+            why = (f"one of the binned grid's {res['object_pixel_um']:.1f}-um object pixels is wider than the "
+                   f"paper's profile, so the fit cannot resolve it; {unbinned}")
         elif l_ is not None and l_ < lat:
             why = ("narrower than the paper's: the model's sources sit on the reconstruction's own PSF (one PSF "
                    "model for the frame and the stack, no calibration error), and l1 sharpens them")
         else:
-            why = "not explained yet: measured on the unbinned grid, where the pixel no longer bounds the fit"
+            why = "not explained yet" + (": measured on the unbinned grid, where the pixel no longer bounds the fit"
+                                         if res["binning"] == 1 else f"; {unbinned}")
         row(f"lateral FWHM of reconstructed {what}, {name} region", lat, l_, how, "um", why=why)
 
 
