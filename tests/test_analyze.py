@@ -225,7 +225,17 @@ def test_depth_range_per_patch_is_the_spread_of_centres_plus_the_elongation():
     assert len(two["patches"]) == 2 and two["mean_um"] == pytest.approx(170, abs=2)
     own = depth_range(rows, (800.0, 800.0), 400.0)
     assert own["elongation_um"] == pytest.approx(FWHM_PER_SIGMA * 1.5 * 20.0, rel=0.05)
-    assert own["elongation_from"].startswith("median")
+    assert own["elongation_from"].startswith("median") and not own["elongation_at_floor"]
+    assert r["elongation_at_floor"] is False   # a given elongation is the user's
+    # particles one plane deep (spikes in z, resolved laterally): the median axial width is the fit's floor, a bound
+    zz, yy, xx = np.meshgrid(*(np.arange(n, dtype=float) for n in (30, 80, 80)), indexing="ij")
+    flat = sum(np.where(zz == c[0], np.exp(-0.5 * ((yy - c[1]) ** 2 + (xx - c[2]) ** 2) / 1.2 ** 2), 0.0)
+               for c in centres) + 1e-3
+    thin = particle_table(flat, vs, threshold=0.3)
+    assert len(thin) == 6 and all(t["axial_at_floor"] and not t["lateral_at_floor"] for t in thin)
+    floor = depth_range(thin, (800.0, 800.0), 400.0)
+    assert floor["elongation_at_floor"] and floor["elongation_um"] == pytest.approx(FWHM_PER_SIGMA * SIGMA_MIN_VOX * 20,
+                                                                                    rel=0.01)
 
 
 def test_cli_analyze_depth_range(tmp_path, capsys):
@@ -235,13 +245,23 @@ def test_cli_analyze_depth_range(tmp_path, capsys):
     out = tmp_path / "dr"
     assert main(["analyze", "depth-range", str(tmp_path / "vol.ome.tif"), "-o", str(out), "--patch-um", "400",
                  "--elongation-um", "372", "--threshold", "0.3"]) == 0
-    assert "depth range 542 +- 184 um over 2 of 4 patches" in capsys.readouterr().out
+    said = capsys.readouterr().out
+    assert "depth range 542 +- 184 um over 2 of 4 patches" in said and "floor" not in said
     rec = json.loads((out / "analysis.json").read_text())
     assert rec["mean_um"] == pytest.approx(542, abs=2) and rec["particles"] == 5
     with open(out / "depth_range.csv") as f:
         table = list(csv.reader(f))
     assert table[0][:2] == ["patch_row", "patch_col"] and len(table) == 3
     assert (out / "depth_range.png").stat().st_size > 1000
+    # particles one plane deep, the elongation their own: the line says it is the fit's floor
+    flat = np.full((30, 80, 80), 1e-3, np.float32)
+    for z, y, x in centres:
+        flat[z, y - 1:y + 2, x - 1:x + 2] += 1.0
+    io.write_tiff(tmp_path / "flat.ome.tif", flat, voxel_size_um=(20.0, 10.0, 10.0))
+    assert main(["analyze", "depth-range", str(tmp_path / "flat.ome.tif"), "-o", str(tmp_path / "fl"),
+                 "--patch-um", "400", "--threshold", "0.3"]) == 0
+    assert "elongation 14 um: the fit's floor, the median particle one plane deep, a bound" in capsys.readouterr().out
+    assert json.loads((tmp_path / "fl" / "analysis.json").read_text())["elongation_at_floor"] is True
     for bad, msg in ((["--patch-um", "2000"], "larger than the volume's field"), (["--patch-um", "-5"], "--patch-um"),
                      (["--elongation-um", "nan"], "--elongation-um"), (["--min-particles", "0"], "--min-particles")):
         assert main(["analyze", "depth-range", str(tmp_path / "vol.ome.tif"), "-o", str(tmp_path / "x")] + bad) != 0

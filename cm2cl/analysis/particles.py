@@ -136,7 +136,9 @@ def depth_range(rows, field_um, patch_um: float = 800.0, elongation_um: float | 
     max z - min z of their centres plus one particle's axial elongation (``elongation_um``; default the median
     axial FWHM of the well-fitted particles, as the paper adds the 372 um of its 25-um particles); the mean
     and standard deviation over those patches. Returns ``patches`` (one dict per patch with particles),
-    ``mean_um``, ``std_um``, ``elongation_um`` and where it came from."""
+    ``mean_um``, ``std_um``, ``elongation_um``, where it came from, and ``elongation_at_floor``: the median
+    particle fills one plane (its axial width is the fit's floor, :func:`at_fit_floor`), so the elongation
+    added is a bound, not a measured length."""
     if not (math.isfinite(patch_um) and patch_um > 0):
         raise InputError(f"patch: {patch_um!r} um must be a positive number")
     ny, nx = (int(math.floor(float(f) / patch_um + 1e-9)) for f in field_um)
@@ -144,12 +146,15 @@ def depth_range(rows, field_um, patch_um: float = 800.0, elongation_um: float | 
         raise InputError(f"patch: {patch_um:g} um is larger than the field {field_um[0]:g} x {field_um[1]:g} um")
     if int(min_particles) < 1:
         raise InputError(f"min_particles: {min_particles!r} must be at least 1")
-    source = "given"
+    source, at_floor = "given", False
     if elongation_um is None:
-        ax = [r["fwhm_axial_um"] for r in rows if r["ok"]]
-        if not ax:
+        good = [r for r in rows if r["ok"]]
+        if not good:
             raise InputError("depth range: no well-fitted particle to measure the axial elongation; give it")
-        elongation_um, source = float(np.median(ax)), "median axial FWHM of the fitted particles"
+        elongation_um, source = float(np.median([r["fwhm_axial_um"] for r in good])), \
+            "median axial FWHM of the fitted particles"
+        # the median lies at the floor when more than half of the widths do (the floor is the smallest width)
+        at_floor = 2 * sum(1 for r in good if r.get("axial_at_floor", False)) > len(good)
     elif not (math.isfinite(elongation_um) and elongation_um >= 0):
         raise InputError(f"elongation: {elongation_um!r} um must be a number >= 0")
     cells = {}
@@ -167,7 +172,7 @@ def depth_range(rows, field_um, patch_um: float = 800.0, elongation_um: float | 
     v = np.array([p["range_um"] for p in patches])
     return {"patches": patches, "patch_um": float(patch_um), "patches_total": ny * nx,
             "mean_um": float(v.mean()) if v.size else None, "std_um": float(v.std(ddof=1)) if v.size > 1 else None,
-            "elongation_um": float(elongation_um), "elongation_from": source}
+            "elongation_um": float(elongation_um), "elongation_from": source, "elongation_at_floor": at_floor}
 
 
 __all__ = ["FWHM_PER_SIGMA", "HALF_WINDOW", "SIGMA_MIN_VOX", "at_fit_floor", "depth_range", "fit_particle",

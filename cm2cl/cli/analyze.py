@@ -376,7 +376,8 @@ def _depth_range(args, vol, meta) -> dict:
     std = "-" if r["std_um"] is None else f"{r['std_um']:.0f}"
     say = (f"{args.output}: depth range {r['mean_um']:.0f} +- {std} um over {len(r['patches'])} of "
            f"{r['patches_total']} patches of {args.patch_um:g} um ({len(rows)} particles, elongation "
-           f"{r['elongation_um']:.0f} um)")
+           f"{r['elongation_um']:.0f} um" + (": the fit's floor, the median particle one plane deep, a bound"
+                                             if r["elongation_at_floor"] else "") + ")")
     return {"what": "cm2cl analyze depth-range", "volume": str(args.volume), "threshold": args.threshold,
             "voxel_size_um": list(vs), "particles": len(rows), **{k: v for k, v in r.items() if k != "patches"},
             "min_particles": args.min_particles, "table": "depth_range.csv", "figure": "depth_range.png",
