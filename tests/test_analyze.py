@@ -87,6 +87,10 @@ def test_a_one_voxel_particle_fits_at_the_floor():
     assert fa["lateral_at_floor"] and not fa["axial_at_floor"] and fa["sigma_axial_vox"] == pytest.approx(1.5, rel=0.05)
     s = summary([measure_particle(ax, (4, 7, 7)), measure_particle(g, (4, 7, 7))])["all"]
     assert (s["n_fit"], s["n_lateral_at_floor"], s["n_axial_at_floor"]) == (2, 1, 0)
+    assert not s["lateral_median_at_floor"]   # one of two: the median lies above the floor
+    s = summary([measure_particle(ax, (4, 7, 7))] * 2 + [measure_particle(g, (4, 7, 7))])["all"]
+    assert s["lateral_median_at_floor"] and not s["axial_median_at_floor"]
+    assert s["fwhm_lateral_um"]["median"] == pytest.approx(FWHM_PER_SIGMA * SIGMA_MIN_VOX, rel=0.01)
 
 
 def test_cli_analyze_pcc_and_particles(tmp_path, capsys):

@@ -44,7 +44,7 @@ if str(ROOT) not in sys.path:
 
 from cm2cl.analysis.lateral import CENTRAL_PCC_LEVEL, high_pcc_diameter_mm, lateral_pcc_map, region_summary  # noqa: E402
 from cm2cl.analysis.mtf import mtf_analysis  # noqa: E402
-from cm2cl.analysis.particles import FWHM_PER_SIGMA, SIGMA_MIN_VOX, at_fit_floor  # noqa: E402
+from cm2cl.analysis.particles import SIGMA_MIN_VOX  # noqa: E402
 from cm2cl.analysis.views import lenslet_grid, pcc_curves  # noqa: E402
 from cm2cl.optics import CM2Optics, depth_planes  # noqa: E402
 from cm2cl.optics.characterise import PAPER_PCC_WIDTHS_UM, spot_fwhm_um  # noqa: E402
@@ -476,7 +476,7 @@ def _fwhm_rows(row, res: dict, paper: dict, what: str, sources: str, why_axial: 
         unbinned = f"the paper's 5.3-um pixels need the unbinned sensor (`{bin_flag} 1`, over an hour here)"
         if l_ is not None and abs(l_ / lat - 1) <= 0.15:
             why = ""
-        elif l_ is not None and at_fit_floor(l_ / (FWHM_PER_SIGMA * res["object_pixel_um"])):
+        elif r.get("lateral_median_at_floor"):
             why = (f"the fit's floor (sigma {SIGMA_MIN_VOX:g} voxel): the median source is reconstructed into one "
                    f"{res['object_pixel_um']:.2f}-um voxel laterally, so this bounds the width, it does not measure "
                    "it. The model's sources sit on the reconstruction's own PSF (one PSF model for the frame and the "

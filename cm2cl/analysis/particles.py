@@ -27,6 +27,12 @@ def at_fit_floor(sigma_vox: float) -> bool:
     return float(sigma_vox) <= 1.01 * SIGMA_MIN_VOX
 
 
+def median_at_floor(rows, axis: str) -> bool:
+    """Whether the median ``axis`` ('lateral' or 'axial') width of ``rows`` (particle rows, the well-fitted
+    ones) is the fit's floor: more than half of them are at it (the floor is the smallest width a fit gives)."""
+    return 2 * sum(1 for r in rows if r.get(f"{axis}_at_floor", False)) > len(rows)
+
+
 def _gauss(p, zz, yy, xx):
     a, z0, y0, x0, sz, sr, b = p
     return a * np.exp(-0.5 * (((zz - z0) / sz) ** 2 + ((yy - y0) ** 2 + (xx - x0) ** 2) / sr ** 2)) + b
@@ -107,12 +113,13 @@ def measure_particle(volume, index, voxel_size_um=(1.0, 1.0, 1.0), depths_um=Non
 def summary(rows, key=None) -> dict:
     """Median and quartiles of the lateral and axial FWHM over the rows whose fit is ok (``n``, ``n_fit``), and
     how many of those widths are at the fit's floor (``n_lateral_at_floor``, ``n_axial_at_floor``: one voxel, a
-    bound); with ``key(row) -> region``, the same per region as well."""
+    bound) and whether the median is (``lateral_median_at_floor``, ``axial_median_at_floor``); with ``key(row) -> region``, the same per region as well."""
     def stats(rs):
         good = [r for r in rs if r["ok"]]
         out = {"n": len(rs), "n_fit": len(good)}
         for axis in ("lateral", "axial"):
             out[f"n_{axis}_at_floor"] = sum(1 for r in good if r.get(f"{axis}_at_floor", False))
+            out[f"{axis}_median_at_floor"] = median_at_floor(good, axis)
         for k in ("fwhm_lateral_um", "fwhm_axial_um"):
             v = np.array([r[k] for r in good])
             out[k] = ({"median": float(np.median(v)), "q1": float(np.percentile(v, 25)),
@@ -153,8 +160,7 @@ def depth_range(rows, field_um, patch_um: float = 800.0, elongation_um: float | 
             raise InputError("depth range: no well-fitted particle to measure the axial elongation; give it")
         elongation_um, source = float(np.median([r["fwhm_axial_um"] for r in good])), \
             "median axial FWHM of the fitted particles"
-        # the median lies at the floor when more than half of the widths do (the floor is the smallest width)
-        at_floor = 2 * sum(1 for r in good if r.get("axial_at_floor", False)) > len(good)
+        at_floor = median_at_floor(good, "axial")
     elif not (math.isfinite(elongation_um) and elongation_um >= 0):
         raise InputError(f"elongation: {elongation_um!r} um must be a number >= 0")
     cells = {}
@@ -176,4 +182,4 @@ def depth_range(rows, field_um, patch_um: float = 800.0, elongation_um: float | 
 
 
 __all__ = ["FWHM_PER_SIGMA", "HALF_WINDOW", "SIGMA_MIN_VOX", "at_fit_floor", "depth_range", "fit_particle",
-           "measure_particle", "noise_floor", "particle_table", "summary"]
+           "measure_particle", "median_at_floor", "noise_floor", "particle_table", "summary"]

@@ -74,8 +74,8 @@ def add_solver(r) -> None:
                         "plane's weight ~ (||h_i|| sum h_i)^(1/2), TV off: best for beads and fibres alike on "
                         "docs/quality.md's suite); 'points': each plane's l1 ~ its light (alike for planes of equal "
                         "light), TV off; 'points-weighted': each plane's l1 weight ~ ||h_i||^2 / sum h_i; 'extended': "
-                        "TV at 5 x the noise level too, and the PSF refined by one kernel common to every lenslet (--psf-refine "
-                        "common), for smooth extended structure. --l1/--tv/--psf-refine win")
+                        "TV at 5 x the noise level too, and the PSF refined by one kernel common to every lenslet "
+                        "(--psf-refine common), for smooth extended structure. --l1/--tv/--psf-refine win")
     tuned = sorted({k for o in PRESETS.values() for k in o})
     g.add_argument("--preset", choices=list(PRESETS), default=None,
                    help="accuracy against time, measured in docs/accuracy_vs_time.md: " + "; ".join(
