@@ -123,3 +123,41 @@ def test_heldout_psf_family_is_what_its_docstring_says():
     # gains scale the lenslets' light, a blur keeps each plane's light
     g = H.hex_psf(3, (80, 96), gains=[0.5] * 7, blur=0.7)
     np.testing.assert_allclose(g.sum(axis=(1, 2)), 0.5, rtol=1e-3)
+
+
+def test_reproduce_paper_calls_an_axial_width_at_the_fits_floor_a_bound():
+    """A region whose median source fills one plane (its axial FWHM is the Gaussian fit's floor, 0.71 plane) is
+    reported as a bound with the plane named, not as a width narrower than the paper's; a resolved region keeps
+    the general reason; a region within 15% of the paper gives none."""
+    import reproduce_paper as RP
+
+    def stats(axial_um, at_floor):
+        return {"n_fit": 10, "fwhm_axial_um": {"median": axial_um}, "fwhm_lateral_um": {"median": 11.0},
+                "axial_median_at_floor": at_floor, "lateral_median_at_floor": False}
+
+    res = {"binning": 1, "sources": 30, "found": 30, "step_mm": 1.0, "shape": (1944, 2592), "object_pixel_um": 5.28,
+           "dz_um": 20.0, "iterations": 700,
+           "summary": {"regions": {"central": stats(14.1, True), "outer": stats(70.0, False),
+                                   "corner": stats(290.0, False)}}}
+    rows = []
+    RP._fwhm_rows(lambda name, paper, ours, how, unit="", why="": rows.append((name, ours, why)), res,
+                  RP.PAPER_BEADS, "10-um beads", "10 um", "GENERAL", "--bead-bin")
+    axial = {name.split(", ")[1].split(" ")[0]: (ours, why) for name, ours, why in rows if name.startswith("axial")}
+    assert axial["central"][0] == 14.1 and "fit's floor" in axial["central"][1]
+    assert "one 20-um plane" in axial["central"][1] and "bounds the width" in axial["central"][1]
+    assert axial["outer"][1] == "GENERAL"                     # resolved, 76% below the paper: the general reason
+    assert axial["corner"][1] == ""                           # 290 against 299: within 15%
+
+
+def test_a_regenerated_page_keeps_its_hand_written_sections(tmp_path):
+    """Tools that rewrite a docs page (fit_optics, heldout_psf) keep everything from its first hand-written
+    heading on, and write only the generated text on a new page or one without such a heading."""
+    from benchlib import with_hand_written
+
+    page = tmp_path / "page.md"
+    assert with_hand_written("new\n", page) == "new\n"
+    hand = "## Reading (hand-written, stop 9)\n\nkept\n\n## Later\n\nkept too\n"
+    page.write_text("# T\n\nold table\n\n## Scan\n\nrows\n\n" + hand)
+    assert with_hand_written("new\n", page) == "new\n\n" + hand
+    page.write_text("# T\n\nold table, the word hand-written in a line\n")
+    assert with_hand_written("new\n", page) == "new\n"

@@ -55,3 +55,13 @@ def write_section(name: str, text: str, path: Path = DOCS / "benchmarks.md") -> 
     doc = pat.sub(lambda m: block + "\n", doc) if pat.search(doc) else doc.rstrip() + "\n\n" + block
     path.write_text(doc)
     return path
+
+
+def with_hand_written(text: str, path: Path) -> str:
+    """``text`` (a tool's generated markdown) followed by the hand-written part of the page at ``path``, kept
+    across re-runs: everything from its first "## " heading that says "(hand-written"."""
+    if not path.exists():
+        return text
+    old = path.read_text()
+    m = re.search(r"^## [^\n]*\(hand-written", old, re.M)
+    return text + "\n" + old[m.start():] if m else text

@@ -32,6 +32,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from benchlib import with_hand_written  # noqa: E402
 from cm2cl.analysis.mtf import mtf_analysis  # noqa: E402
 from cm2cl.analysis.views import pcc_curves  # noqa: E402
 from cm2cl.optics import CM2Optics, depth_planes  # noqa: E402
@@ -160,7 +161,7 @@ def main(argv=None) -> int:
     lines[2] = lines[2].replace("`python tools/fit_optics.py`", "`python tools/fit_optics.py"
                                 + (f" --blur {a.blur}" if blurs else "") + "`")
     a.out.parent.mkdir(parents=True, exist_ok=True)
-    a.out.write_text("\n".join(lines) + "\n")
+    a.out.write_text(with_hand_written("\n".join(lines) + "\n", a.out))   # hand-written sections stay
     print(f"wrote {a.out}")
     return 0
 

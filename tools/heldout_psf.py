@@ -31,6 +31,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import cm2cl  # noqa: E402
+from benchlib import with_hand_written  # noqa: E402
 from cm2cl.analysis import quality as Q  # noqa: E402
 
 NZ, SHAPE, FOCUS = 20, (160, 192), 6.0
@@ -138,13 +139,7 @@ def write_md(rows, path: Path, argv, seconds: float) -> None:
                   {z: sum(1 for r in rows for zz, _ in r["missed"] if zz == z) for r in rows
                    for z, _ in r["missed"]}.items())) + "."]
     path.parent.mkdir(parents=True, exist_ok=True)
-    text = "\n".join(lines) + "\n"
-    if path.exists():   # keep the hand-written reading below the generated part
-        old = path.read_text()
-        mark = "\n## Reading (hand-written"
-        if mark in old:
-            text += old[old.index(mark):]
-    path.write_text(text)
+    path.write_text(with_hand_written("\n".join(lines) + "\n", path))   # the hand-written reading stays
 
 
 def main(argv=None) -> int:
