@@ -9,7 +9,8 @@ import pytest
 
 import cm2cl
 from cm2cl import reference as ref
-from cm2cl.solver.control import ADAPT_MAX_STEP, DATA_PENALTY, NOISE_FLOOR, Control, ProblemScale, SplitStats, noise_sigma
+from cm2cl.solver.control import (ADAPT_FROM, ADAPT_MAX_STEP, DATA_PENALTY, NOISE_FLOOR, Control, ProblemScale,
+                                  SplitStats, noise_sigma)
 from cm2cl.solver.params import ADMMParams
 from test_admm import bead_problem
 
@@ -89,11 +90,20 @@ def _norms(r, s, mu, **over):
 
 def test_adaptation_raises_a_low_penalty_fast_and_stays_bounded():
     for step, want in ((None, ADAPT_MAX_STEP), (3.0, 3.0)):
-        ctl = _control(mu_u=1e-6, mu_w=1e-6, adapt_max_step=step)
+        ctl = _control(mu_u=1e-6, mu_w=1e-6, adapt_max_step=step, adapt_from=1)
         for it in range(1, 9):    # primal residual 1e4 x the dual one: the penalty rises by the bound each time
             ctl.update(it, **_norms(1.0, 1e-4, ctl.mu_w))
         assert ctl.mu_w == pytest.approx(1e-6 * want ** 8, rel=1e-9)
-    assert ADAPT_MAX_STEP == 1.5
+    assert ADAPT_MAX_STEP == 1.5 and ADAPT_FROM == 10
+    # the default: the cold start's first iterations leave the penalty; iteration 10 rebalances, then every 10th
+    ctl = _control(mu_u=1e-6, mu_w=1e-6)
+    seen = {}
+    for it in range(1, 31):
+        ctl.update(it, **_norms(1.0, 1e-4, ctl.mu_w))
+        seen[it] = ctl.mu_w
+    assert seen[9] == 1e-6 and seen[10] == pytest.approx(1.5e-6, rel=1e-12)
+    assert seen[19] == seen[10] and seen[20] == pytest.approx(1e-6 * 1.5 ** 2, rel=1e-12)
+    assert seen[30] == pytest.approx(1e-6 * 1.5 ** 3, rel=1e-12)
     ctl = _control(mu_u=1e-6, mu_w=1e-6, adapt_max_step=100.0)   # 100^8 would pass the range: it stops there
     for it in range(1, 400):
         ctl.update(it, **_norms(1.0, 1e-4, ctl.mu_w))

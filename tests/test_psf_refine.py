@@ -125,9 +125,10 @@ def test_refinement_moves_the_psf_to_the_true_one_and_finds_the_beads(rt):
 
 def test_rounds_keep_their_penalties_and_the_final_solve_takes_the_default(rt):
     """The refinement's rounds start at mu_v = 1 with rebalancing steps up to x3 (ROUND_PENALTIES: their 100
-    iterations shape the volume the kernels are fitted to); the final solve at the solver's default 0.2 with
-    steps up to x1.5. A mu_v the caller gives applies to both."""
-    from cm2cl.solver.control import ADAPT_MAX_STEP, DATA_PENALTY
+    iterations shape the volume the kernels are fitted to), rebalancing from the first iteration; the final
+    solve at the solver's default 0.2 with steps up to x1.5 from iteration 10. A mu_v the caller gives applies
+    to both."""
+    from cm2cl.solver.control import ADAPT_FROM, ADAPT_MAX_STEP, DATA_PENALTY
 
     psf, _, y, _ = _kernel_mismatch_scene()
     kw = dict(psf_refine=2, psf_refine_iter=20, max_iter=80, background="none")
@@ -136,9 +137,13 @@ def test_rounds_keep_their_penalties_and_the_final_solve_takes_the_default(rt):
     assert rec.info["initial_penalties"]["mu_v"] == DATA_PENALTY
     assert [r["adapt_max_step"] for r in rec.info["psf_refine"]["per_round"]] == [3.0, 3.0]
     assert rec.info["adapt_max_step"] == ADAPT_MAX_STEP == 1.5
+    # the rounds rebalance from their first iteration, the final solve after the cold start's transient
+    assert [r["adapt_from"] for r in rec.info["psf_refine"]["per_round"]] == [1, 1]
+    assert rec.info["adapt_from"] == ADAPT_FROM == 10
     steps = [rec.history[f"mu_{n}"][1:] / rec.history[f"mu_{n}"][:-1] for n in ("v", "w")]
     assert max(float(np.max(np.maximum(q, 1 / q))) for q in steps) <= ADAPT_MAX_STEP * (1 + 1e-6)
-    assert R.round_params(ADMMParams(adapt_max_step=2.0)) == ADMMParams(adapt_max_step=2.0, mu_v=1.0)
+    assert R.round_params(ADMMParams(adapt_max_step=2.0)) == ADMMParams(adapt_max_step=2.0, mu_v=1.0, adapt_from=1)
+    assert R.round_params(ADMMParams(adapt_from=5)).adapt_from == 5   # given: the rounds take it too
     given = cm2cl.reconstruct(y, psf, mu_v=0.5, **kw)
     assert [r["mu_v"] for r in given.info["psf_refine"]["per_round"]] == [0.5, 0.5]
     assert given.info["initial_penalties"]["mu_v"] == 0.5

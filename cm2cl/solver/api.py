@@ -266,6 +266,7 @@ def _refined(solve, y, psf, weights, prm, padded_shape, x0):
             h = h_new
         rounds.append({"iterations": rec.iterations, "residual": misfit, "l1_scale": scale, "depth_nodes": nodes,
                        "mu_v": rec.info["initial_penalties"]["mu_v"], "adapt_max_step": rec.info["adapt_max_step"],
+                       "adapt_from": rec.info["adapt_from"],
                        "kernels": R.kernel_summary(k),
                        "kept": bool(empty)})
         gains = [q["gain"] for q in rounds[-1]["kernels"]]

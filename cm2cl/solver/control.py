@@ -30,6 +30,11 @@ DATA_PENALTY = 0.2
 #: the largest factor of one adaptive rebalancing (adapt_max_step's default): at mu_v = 0.2 steps of x3
 #: overshot mu_w to 81x the spectral mean on DiffuserCam 3D binned 2x (835 iterations to 1%; 545-583 at x1.5)
 ADAPT_MAX_STEP = 1.5
+#: the first iteration at which the adaptive rule rebalances (adapt_from's default). Before it the residuals are the
+#: transient of the cold start (x, the splits and their duals at 0), not the problem's: rebalancing on them raised
+#: mu_w x1.5 on each of the first 10 iterations on DiffuserCam 3D binned 2x, to 58x its start, and the solve then
+#: needed 689 iterations to come within 1% of the optimum; from iteration 10 on, 154 (docs/iterations.md, stop 54)
+ADAPT_FROM = 10
 
 
 def noise_sigma(y) -> float:
@@ -145,6 +150,8 @@ class Control:
         self.mu0 = {name: scale.penalty(p, name, kind) for name, kind in splits}
         #: the largest factor of one rebalancing: the given adapt_max_step, or ADAPT_MAX_STEP
         self.max_step = float(p.adapt_max_step if p.adapt_max_step is not None else ADAPT_MAX_STEP)
+        #: the first iteration that rebalances: the given adapt_from, or ADAPT_FROM
+        self.adapt_from = int(p.adapt_from if p.adapt_from is not None else ADAPT_FROM)
         self.mu = dict(self.mu0)
         #: splits whose term is active: a split z = x without a weight (TV off) carries no term, z = x
         #: + dual / mu = x exactly, and its penalty is neither adapted nor part of the stopping rule
@@ -178,7 +185,7 @@ class Control:
             elif s > p.balance_ratio * r:
                 mu /= p.balance_factor
         else:
-            if it > p.adapt_until or (it > 10 and it % 10):
+            if it < self.adapt_from or it > p.adapt_until or (it > 10 and it % 10):
                 return mu
             q = _ratio(r, s)
             if q > p.adapt_ratio or q < 1.0 / p.adapt_ratio:
@@ -244,4 +251,5 @@ class Control:
                             "noise_x": sc.noise_x, "plane_power": p.l1_plane_power},
                 "noise_sigma": self.scale.noise_sigma, "noise_x": self.scale.noise_x, "spectral_mean": self.scale.spectral_mean,
                 "initial_penalties": {f"mu_{n}": mu for n, mu in self.mu0.items()}, "adapt_max_step": self.max_step,
+                "adapt_from": self.adapt_from,
                 "penalty_policy": self.p.penalty, "tol": self.p.tol, "tol_change": self.p.tol_change}

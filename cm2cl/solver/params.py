@@ -116,7 +116,8 @@ class ADMMParams:
         "adaptive", {"type": "str", "choices": PENALTY_POLICIES},
         "Penalty policy: 'adaptive' starts from the problem's scale and rebalances a split's penalty by "
         "sqrt(primal / dual residual), bounded by adapt_max_step, when the two differ by more than adapt_ratio "
-        "(iterations 1..10, then every 10th, up to adapt_until, within mu_range of the start); 'balance' is the "
+        "(from iteration adapt_from to 10, then every 10th, up to adapt_until, within mu_range of the start); "
+        "'balance' is the "
         "CM2 authors' residual balancing (balance_factor steps when the residuals differ by more than "
         "balance_ratio); 'fixed' keeps the initial penalties.", flag=True)
     balance_factor: float = _param(
@@ -129,6 +130,11 @@ class ADMMParams:
     adapt_max_step: float | None = _param(
         None, {"type": "float", "min": 1, "exclusive": True}, "'adaptive': the largest factor of one rebalancing.",
         auto="1.5; 3 in the PSF refinement's rounds")
+    adapt_from: int | None = _param(
+        None, {"type": "int", "min": 1}, "'adaptive': the first iteration at which penalties are rebalanced.",
+        unit=_ITERS,
+        auto="10: the residuals of the first iterations are the cold start's transient (docs/iterations.md); 1 in the "
+             "PSF refinement's rounds, whose 100 iterations shape the volume their kernels are fitted to")
     # after it the penalties stay, so ADMM's convergence with fixed penalties holds
     adapt_until: int = _param(
         100, {"type": "int", "min": 0}, "'adaptive': the last iteration at which penalties are rebalanced.",

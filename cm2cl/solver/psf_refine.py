@@ -50,8 +50,8 @@ OVERRELAX = 1.7
 #: the rounds' penalties where the caller gave none: a round stops at psf_refine_iter (100) iterations, so its
 #: penalty shapes the volume the kernels are fitted to. The schedule was set at these (the solver's defaults
 #: before stop 50); with the final solve's 0.2 and x1.5 in the rounds too, mm_all lost 3 beads of 40
-#: (docs/penalty.md, last section)
-ROUND_PENALTIES = {"mu_v": 1.0, "adapt_max_step": 3.0}
+#: (docs/penalty.md, last section); they rebalance from the first iteration, as they were set with
+ROUND_PENALTIES = {"mu_v": 1.0, "adapt_max_step": 3.0, "adapt_from": 1}
 #: a footprint piece of n is a view in a plane where it holds more than VIEW_SHARE / n of the plane's light
 VIEW_SHARE = 0.2
 #: psf_refine='auto': the rounds (the common one included) when the views disagree (docs/psf_refine.md's schedule)
