@@ -32,8 +32,8 @@ DATA_PENALTY = 0.2
 ADAPT_MAX_STEP = 1.5
 #: the first iteration at which the adaptive rule rebalances (adapt_from's default). Before it the residuals are the
 #: transient of the cold start (x, the splits and their duals at 0), not the problem's: rebalancing on them raised
-#: mu_w x1.5 on each of the first 10 iterations on DiffuserCam 3D binned 2x, to 58x its start, and the solve then
-#: needed 689 iterations to come within 1% of the optimum; from iteration 10 on, 154 (docs/iterations.md, stop 54)
+#: mu_w x1.5 ten times by iteration 20 on DiffuserCam 3D binned 2x, to 58x its start, and the solve then needed
+#: 679 iterations to come within 1% of the optimum; rebalancing from iteration 10, 154 (docs/iterations.md, stop 54)
 ADAPT_FROM = 10
 
 

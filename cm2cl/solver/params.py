@@ -116,10 +116,9 @@ class ADMMParams:
         "adaptive", {"type": "str", "choices": PENALTY_POLICIES},
         "Penalty policy: 'adaptive' starts from the problem's scale and rebalances a split's penalty by "
         "sqrt(primal / dual residual), bounded by adapt_max_step, when the two differ by more than adapt_ratio "
-        "(from iteration adapt_from to 10, then every 10th, up to adapt_until, within mu_range of the start); "
-        "'balance' is the "
-        "CM2 authors' residual balancing (balance_factor steps when the residuals differ by more than "
-        "balance_ratio); 'fixed' keeps the initial penalties.", flag=True)
+        "(at iterations adapt_from..10, then every 10th up to adapt_until, within mu_range of the start); "
+        "'balance' is the CM2 authors' residual balancing (balance_factor steps when the residuals differ by more "
+        "than balance_ratio); 'fixed' keeps the initial penalties.", flag=True)
     balance_factor: float = _param(
         1.1, {"type": "float", "min": 1, "exclusive": True}, "'balance': the factor of one penalty step.")
     balance_ratio: float = _param(
