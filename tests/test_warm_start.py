@@ -13,6 +13,7 @@ from cm2cl import reference as ref
 from cm2cl.reference.forward import embed
 from cm2cl.reference.terms import LeastSquaresBackground
 from cm2cl.solver.admm import ADMMSolver
+from cm2cl.solver.control import ADAPT_FROM
 from cm2cl.solver.params import ADMMParams
 
 from test_admm import bead_problem
@@ -121,3 +122,6 @@ def test_a_start_at_the_answer_stays_near_it(rt):
     assert float(cold.history["objective"][0]) / best > 2.0       # what a start without the answer begins at
     assert warm.iterations < 0.65 * cold.iterations, (warm.iterations, cold.iterations)  # 187 / 320 (mu_v 1: 150 / 327)
     assert float(warm.history["objective"][-1]) <= 1.01 * best
+    # a cold start waits out its transient before rebalancing; a start at x0 rebalances from the first iteration
+    # (from iteration 10 this warm solve took 291 iterations)
+    assert cold.info["adapt_from"] == ADAPT_FROM == 10 and warm.info["adapt_from"] == 1

@@ -57,7 +57,7 @@ def admm(y, psf, params=None, padded_shape=None, dtype=np.float64, workers=None,
     if x0 is not None:
         x = (np.maximum(np.asarray(x0, np.float64), 0) * (s_y / s_h)).astype(dt)
     ctl = Control(p, ProblemScale.of(np.where(wts > 0, y * s_y, 0.0), float(np.sum((psf * s_h) ** 2)), nz, nz * P[0] * P[1]),
-                  callback)
+                  callback, cold=x0 is None)
     # each plane's l1 weight: ||h_i||^q (sum h_i)^(1 - q), over its mean (ones for q = 0 and planes of equal light)
     q = float(p.l1_plane_power)
     flat = psf.reshape(nz, -1)

@@ -360,7 +360,7 @@ class ADMMSolver:
         wts = self.pixel_weights
         ctl = Control(self.p, ProblemScale.of(np.where(wts > 0, self.y_n, 0.0), self.spectral_mean, self.nz,
                                               self.nz * self.P[0] * self.P[1]),
-                      callback, callback_every, splits=terms.splits)
+                      callback, callback_every, splits=terms.splits, cold=x0 is None)
         terms.start(self, ctl)
         if x0 is not None:
             # H x0 into part 0's hx by an x step that returns x0 itself: no data penalty (mu_v = 0) and the

@@ -12,6 +12,7 @@ from ..device.fft import resolve_backend
 from ..device.runtime import get_runtime
 from ..errors import InputError
 from .admm import ADMMSolver, _padded_arg, pixel_weights
+from .control import ADAPT_FROM
 from .attenuation import attenuate, unattenuate
 from .params import check_keywords, with_parameters
 
@@ -297,7 +298,10 @@ def _refined(solve, y, psf, weights, prm, padded_shape, x0):
         rnd += 1
     # where kernels per lenslet were fitted (the volume is points, the PSF fits each view) l1 is reweighted
     reweight = R.final_reweight(prm, mode == "auto" and n > 1)
-    solver, rec = solve(h, R.with_reweight(replace(prm, psf_refine=n), reweight), P, x_start)
+    # the final solve restarts its penalties at the cold start's values and its duals at 0 (only x, v and the data
+    # dual start from the last round): it waits for the transient as a cold start does (docs/iterations.md)
+    final = replace(prm, psf_refine=n, adapt_from=prm.adapt_from if prm.adapt_from is not None else ADAPT_FROM)
+    solver, rec = solve(h, R.with_reweight(final, reweight), P, x_start)
     rec.psf = h
     rec.info["psf_refine"] = {"mode": mode if staged else "given",
                               "refined": not all(r["kept"] for r in rounds), "check": check,

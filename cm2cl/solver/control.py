@@ -142,7 +142,7 @@ class Control:
     unweighted parts go to the log)."""
 
     def __init__(self, p: ADMMParams, scale: ProblemScale, callback=None, callback_every: int = 1,
-                 splits=(("v", "data"), ("u", "identity"), ("w", "identity"))):
+                 splits=(("v", "data"), ("u", "identity"), ("w", "identity")), cold: bool = True):
         self.p = p
         self.scale = scale
         self.l1, self.tv = scale.weights(p)
@@ -150,8 +150,9 @@ class Control:
         self.mu0 = {name: scale.penalty(p, name, kind) for name, kind in splits}
         #: the largest factor of one rebalancing: the given adapt_max_step, or ADAPT_MAX_STEP
         self.max_step = float(p.adapt_max_step if p.adapt_max_step is not None else ADAPT_MAX_STEP)
-        #: the first iteration that rebalances: the given adapt_from, or ADAPT_FROM
-        self.adapt_from = int(p.adapt_from if p.adapt_from is not None else ADAPT_FROM)
+        #: the first iteration that rebalances: the given adapt_from, or ADAPT_FROM from a cold start and 1 from a
+        #: warm one (``cold=False``: a start at x0, whose first residuals are the problem's, not a transient)
+        self.adapt_from = int(p.adapt_from if p.adapt_from is not None else (ADAPT_FROM if cold else 1))
         self.mu = dict(self.mu0)
         #: splits whose term is active: a split z = x without a weight (TV off) carries no term, z = x
         #: + dual / mu = x exactly, and its penalty is neither adapted nor part of the stopping rule

@@ -132,8 +132,9 @@ class ADMMParams:
     adapt_from: int | None = _param(
         None, {"type": "int", "min": 1}, "'adaptive': the first iteration at which penalties are rebalanced.",
         unit=_ITERS,
-        auto="10: the residuals of the first iterations are the cold start's transient (docs/iterations.md); 1 in the "
-             "PSF refinement's rounds, whose 100 iterations shape the volume their kernels are fitted to")
+        auto="10: the residuals of the first iterations are the cold start's transient (docs/iterations.md); 1 from a "
+             "start at x0 (a warm start) and in the PSF refinement's rounds, whose 100 iterations shape the volume "
+             "their kernels are fitted to")
     # after it the penalties stay, so ADMM's convergence with fixed penalties holds
     adapt_until: int = _param(
         100, {"type": "int", "min": 0}, "'adaptive': the last iteration at which penalties are rebalanced.",
