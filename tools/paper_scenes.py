@@ -108,6 +108,10 @@ def run_variant(name, sim, label, var, kw, marks, ts, img_dir) -> dict:
     refine = (f"{pr.get('mode', 'given')}: {pr.get('rounds', 0)} round(s)"
               + (f", d {check['disagreement']:.3f}, F {check['f_statistic']:.2f}" if check else "")
               + (f" ({pr['skipped']})" if pr.get("skipped") else ""))
+    est = (rec.info.get("attenuation") or {}).get("estimate")
+    if est:   # --scattering-length-um auto: what it estimated, after a clear-medium solve of so many iterations
+        refine += (f"; l_s estimated {est['scattering_length_um']:.0f} um" if est["scattering_length_um"]
+                   else f"; l_s not applied ({est['reason']})") + f" after {est['first_solve_iterations']} iterations"
     return dict(scene=name, variant=label, shape=f"{sim.psf.shape[0]} x {sim.psf.shape[1]} x {sim.psf.shape[2]}",
                 sim_s=ts, rec_s=tr, iterations=pr.get("iterations_total", rec.iterations),
                 converged=rec.info["converged"], stop=rec.info["stop"], recall=m["recall"],
@@ -122,7 +126,7 @@ def main(argv=None):
     ap.add_argument("--scenes", default="fig3_beads,fig5_scattering")
     ap.add_argument("--max-iter", type=int, default=None, help="default: the solver's default")
     ap.add_argument("--trace", default="", help="comma list of iterations at which the iterate is scored too")
-    ap.add_argument("--variants", default="default", help="comma list of: default, tv0, dtype64, points, scattering")
+    ap.add_argument("--variants", default="default", help="comma list of: default, tv0, dtype64, points, scattering, scattering_auto")
     ap.add_argument("--binning", type=int, default=None, help="sensor binning (default: the scene's own)")
     ap.add_argument("--doc", default=str(DOCS / "paper_scenes.md"))
     args = ap.parse_args(argv)
@@ -133,7 +137,8 @@ def main(argv=None):
     variants = {"default": ("defaults", {}), "tv0": ("TV off (tv 0, l1 default; = --prior points)", {"tv": 0.0}),
                 "dtype64": ("defaults, float64", {"dtype": np.float64}),
                 "points": ("TV off, l1 per plane ~ ||h_i||^2 (= --prior points-weighted)", {"tv_noise_ratio": 0.0, "l1_plane_power": 2.0}),
-                "scattering": ("defaults, --scattering-length-um the scene's l_s", {"scattering_length_um": "scene"})}
+                "scattering": ("defaults, --scattering-length-um the scene's l_s", {"scattering_length_um": "scene"}),
+                "scattering_auto": ("defaults, --scattering-length-um auto", {"scattering_length_um": "auto"})}
     unknown = [v for v in args.variants.split(",") if v not in variants]
     if unknown:
         raise SystemExit(f"--variants: unknown {', '.join(unknown)} (known: {', '.join(variants)})")

@@ -225,7 +225,8 @@ def _tiled(args, y, wp, dt, devs, weights, params: ADMMParams):
                          info={**rec.info, "tiles": info, "l1": info["l1"], "tv": info["tv"],
                                "noise_x": info["noise_x"], "noise_sigma": info["noise_sigma"],
                                "converged": all(info["converged"]),
-                               "stop": f"{sum(info['converged'])} of {info['tiles']} tiles converged"})
+                               "stop": f"{sum(info['converged'])} of {info['tiles']} tiles converged",
+                               **({"attenuation": info["attenuation"]} if "attenuation" in info else {})})
     out.voxel_size_um, out.depths_um = wp.voxel_size_um, wp.depths_um
     return out
 
@@ -280,6 +281,22 @@ def refine_line(record) -> str:
     return f"PSF used as given: --psf-refine {record.get('mode', 'auto')} does not run here ({record.get('skipped')})"
 
 
+def attenuation_line(record) -> str:
+    """One line on the scattering attenuation of ``--scattering-length-um auto`` (its estimate), or ''."""
+    est = (record or {}).get("estimate")
+    if not est:
+        return ""
+    k = est["rate_interval_per_um"]
+    found = (f"{est['emitters']} emitters in {est['planes']} planes, their light falls "
+             f"{100 * est['fall_over_stack']:.0f}% over the stack" if k else f"{est['emitters']} emitters")
+    if record["scattering_length_um"] is None:
+        return f"scattering length not estimated: {est['reason']} ({found}); the volume is as solved"
+    lo, hi = (1.0 / v if v > 0 else float("inf") for v in k[::-1])
+    return (f"scattering length estimated {record['scattering_length_um']:.0f} um (95%: {lo:.0f}-{hi:.0f}) from "
+            f"{found}; each plane divided by its ballistic fraction (deepest "
+            f"{min(record['ballistic_fraction']):.3f})")
+
+
 def _report(out, outset, rec, how, vol):
     last, info = rec.log[-1], rec.info
     scale = "voxel {:g} x {:g} x {:g} um (z, y, x; {})".format(*rec.voxel_size_um, how) if rec.voxel_size_um else how
@@ -304,6 +321,9 @@ def _report(out, outset, rec, how, vol):
             + f"; {info['moved_bytes'] / 1e9:.2f} GB moved between host and devices, "
               f"{info['device_bytes'] / 2**30:.2f} GiB on the devices, peak host RSS {rss / 2**30:.2f} GiB")
     line = refine_line(info.get("psf_refine"))
+    if line:
+        print("  " + line)
+    line = attenuation_line(info.get("attenuation"))
     if line:
         print("  " + line)
     px = info.get("pixels") or {}

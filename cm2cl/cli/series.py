@@ -51,7 +51,7 @@ def command(args, params: ADMMParams) -> int:
     dt = np.dtype(args.dtype)
     from ..solver import attenuation
 
-    attenuation.check(params, wp.depths_um, h.shape[0])   # before the store exists
+    attenuation.check(params, wp.depths_um, h.shape[0], series=True)   # before the store exists
     key = fingerprint(h, params, series, dt, args.backend, prep)
     shape = (h.shape[0],) + tuple(n // args.bin for n in series.shape)
     if not args.scheduler:   # a frame that cannot fit (--stream never, --max-memory) is refused before the store

@@ -80,7 +80,7 @@ def reconstruct_series(frames, psf, output, *, client=None, devices=None, warm_s
             "padded_shape": solver_kw.get("padded_shape")}
     from ..solver import attenuation
 
-    attenuation.check(prm, d, h.shape[0])   # before the store exists
+    attenuation.check(prm, d, h.shape[0], series=True)   # before the store exists
     key = fingerprint(h, prm, series, dt, backend, prep)
     record = {"what": "cm2cl reconstruction series (Python)", "params": prm.as_dict(), "prep": prep,
               "frames": [f"{f.path}[{f.index}]" for f in series.frames[:1000]]}

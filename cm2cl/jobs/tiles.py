@@ -171,11 +171,16 @@ def reconstruct_tiled(measurement, psf, tile, halo=None, *, progress=None, **kw)
         raise InputError("psf_refine: not available with lateral tiles (the PSF is refined on the whole frame)")
     # 'auto' and 'common' do not refine tiles: a tile's few views would each decide for themselves
     kw = {**kw, "psf_refine": 0}
-    from ..solver.attenuation import attenuate
+    from ..solver.attenuation import AUTO, attenuate, solve_estimated
 
     names = {f.name for f in fields(ADMMParams)}
     p = ADMMParams.from_kwargs(**{k: v for k, v in kw.items() if k in names})
-    psf, _ = attenuate(psf, kw.get("depths_um"), p)   # the whole stack once; the tiles solve with it as given
+    psf, att = attenuate(psf, kw.get("depths_um"), p)   # the whole stack once; the tiles solve with it as given
+    if p.scattering_length_um == AUTO:   # l_s from the whole stitched volume of a clear-medium solve
+        call = dict(measurement=y, psf=psf, tile=tile, halo=halo, progress=progress, **kw)
+        (vol, info), record = solve_estimated(reconstruct_tiled, lambda r: r[0],
+                                              kw.get("depths_um"), p, call)
+        return vol, {**info, "attenuation": record}
     kw = {**kw, "scattering_length_um": None, "surface_um": None}
     plan = plan_tiles(y.shape, psf, tile, halo)
     # the whole frame's normalisation and weights (module doc)
@@ -210,4 +215,6 @@ def reconstruct_tiled(measurement, psf, tile, halo=None, *, progress=None, **kw)
     info = {"tiles": len(plan.tiles), "tile": list(plan.tile), "halo": list(plan.halo), "reach": list(plan.reach),
             "feather": list(plan.feather), "l1": l1, "tv": tv, "iterations": iterations, "converged": converged,
             "noise_x": scale.noise_x, "noise_sigma": scale.noise_sigma}
+    if att is not None:
+        info["attenuation"] = att
     return np.maximum(out, 0).astype(np.dtype(kw.get("dtype", np.float32))), info

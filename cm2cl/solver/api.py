@@ -13,7 +13,7 @@ from ..device.runtime import get_runtime
 from ..errors import InputError
 from .admm import ADMMSolver, _padded_arg, pixel_weights
 from .control import ADAPT_FROM
-from .attenuation import attenuate, unattenuate
+from .attenuation import AUTO, attenuate, solve_estimated, unattenuate
 from .params import check_keywords, with_parameters
 
 log = logging.getLogger(__name__)
@@ -117,6 +117,7 @@ def reconstruct(measurement, psf, *, dtype=np.float32, backend: str = "auto", de
                 overlap="auto", lean="auto", voxel_size_um=None, depths_um=None,
                 weights=None, padding: str = "full", callback=None, callback_every: int = 1,
                 x0=None, camera=None, **params) -> Reconstruction:
+    call = dict(locals())   # the arguments as given: scattering_length_um='auto' solves twice with them
     prm = check_keywords("reconstruct", params)
     psf = validate.psf_stack(validate.image_array(psf, "psf"), "psf")
     y = validate.real_array(validate.image_array(measurement, "measurement", ndims=(2,)), "measurement", ndims=(2,))
@@ -125,6 +126,11 @@ def reconstruct(measurement, psf, *, dtype=np.float32, backend: str = "auto", de
                          f"{psf.shape[1:]} (psf shape {psf.shape})")
     vs, d = check_scale(voxel_size_um, depths_um, psf.shape[0])
     psf, attenuation = attenuate(psf, d, prm)
+    if prm.scattering_length_um == AUTO:   # the depths are checked: solved clear, l_s estimated, solved with it
+        kw = {**{k: v for k, v in call.items() if k != "params"}, **call["params"]}
+        rec, record = solve_estimated(reconstruct, lambda r: r.volume, d, prm, kw)
+        rec.info["attenuation"] = record
+        return rec
     y, weights, cam = _camera(y, weights, camera)
     pad_info = None
     if padding not in ("full", "support"):

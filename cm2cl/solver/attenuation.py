@@ -11,6 +11,10 @@ and the volume x holds each emitter's brightness before the attenuation, so that
 bright as a shallow one of the same brightness; without it the deep planes are dimmed by a_i and fall
 below any detection threshold relative to the volume's peak (docs/paper_scenes.md, fig5_scattering).
 Depth increases with z (the planes' ``depths_um``), as in cm2cl's simulator (cm2cl.simulate.effects).
+
+``scattering_length_um='auto'`` (:func:`solve_estimated`): the frame is solved with the clear-medium stack, l_s
+estimated from how that answer's emitters' light falls with depth (:mod:`cm2cl.analysis.attenuation`), and the
+frame solved again with that l_s: the answer a user who gives the estimate gets, at twice the time.
 """
 
 from __future__ import annotations
@@ -19,7 +23,10 @@ import numpy as np
 
 from ..errors import InputError
 
-__all__ = ["ballistic_fractions", "check", "attenuate", "unattenuate"]
+__all__ = ["AUTO", "ballistic_fractions", "check", "attenuate", "unattenuate", "solve_estimated"]
+
+#: the word of ``scattering_length_um`` that estimates it from the solved volume
+AUTO = "auto"
 
 
 def ballistic_fractions(depths_um, scattering_length_um: float, surface_um: float | None = None) -> np.ndarray:
@@ -29,10 +36,15 @@ def ballistic_fractions(depths_um, scattering_length_um: float, surface_um: floa
     return np.exp(-np.clip(z - top, 0.0, None) / float(scattering_length_um))
 
 
-def check(params, depths_um, nz: int) -> bool:
+def check(params, depths_um, nz: int, series: bool = False) -> bool:
     """Whether ``params`` ask for attenuation, after checking that they can have it (one-line InputErrors:
-    a surface without a scattering length, no depths, depths that do not match the planes)."""
+    a surface without a scattering length, no depths, depths that do not match the planes, 'auto' for a
+    ``series``, whose frames share one model)."""
     ls = getattr(params, "scattering_length_um", None)
+    if series and ls == AUTO:
+        raise InputError("scattering_length_um: 'auto' is estimated from one solved volume, and a series solves every "
+                         "frame with one model; estimate it on a frame (cm2cl reconstruct --scattering-length-um auto: "
+                         "info.attenuation of its record) and give the series that number")
     if ls is None:
         if getattr(params, "surface_um", None) is not None:
             raise InputError("surface_um: only with a scattering length (the surface is where the attenuation starts)")
@@ -49,7 +61,7 @@ def attenuate(psf, depths_um, params) -> tuple[np.ndarray, dict | None]:
     """(the PSF stack with each plane scaled by its ballistic fraction, the record) for ``params``
     (an ADMMParams: ``scattering_length_um``, ``surface_um``); the stack itself and None without a scattering
     length. The scaled stack is a copy in the stack's own float dtype (one more stack in host memory)."""
-    if not check(params, depths_um, psf.shape[0]):
+    if not check(params, depths_um, psf.shape[0]) or params.scattering_length_um == AUTO:
         return psf, None
     ls = params.scattering_length_um
     z = np.asarray(depths_um, np.float64).ravel()
@@ -68,3 +80,34 @@ def unattenuate(psf, record) -> np.ndarray:
         return psf
     a = np.asarray(record["ballistic_fraction"], np.float64)
     return np.asarray(psf, np.float64) / a[:, None, None]
+
+
+
+def solve_estimated(solve, volume_of, depths_um, params, call: dict) -> tuple:
+    """``scattering_length_um='auto'``: ``solve(**call, scattering_length_um=None)`` (the clear-medium
+    model), l_s estimated from its volume (``volume_of(result)``; :mod:`cm2cl.analysis.attenuation`), then,
+    where the estimate applies, ``solve(**call, scattering_length_um=estimate)``: the answer a user giving
+    that number gets. Returns (the result, its ``attenuation`` record with ``estimate``: the estimator's
+    dict and the first solve's iterations)."""
+    from ..analysis.attenuation import estimate_scattering_length
+
+    z = np.asarray(depths_um, np.float64).ravel()
+    clear = {k: v for k, v in call.items() if k not in ("scattering_length_um", "surface_um")}
+    first = solve(**clear)
+    est = estimate_scattering_length(volume_of(first), z, params.surface_um)
+    est["first_solve_iterations"] = _iterations(first)
+    ls = est["scattering_length_um"]
+    if ls is None:
+        return first, {"scattering_length_um": None, "surface_um": est["surface_um"],
+                       "ballistic_fraction": [1.0] * z.size, "estimate": est}
+    out = solve(**clear, scattering_length_um=ls, surface_um=est["surface_um"])
+    return out, {"scattering_length_um": ls, "surface_um": est["surface_um"],
+                 "ballistic_fraction": [float(v) for v in ballistic_fractions(z, ls, est["surface_um"])],
+                 "estimate": est}
+
+
+def _iterations(result):
+    """The iterations a solve's result ran (a Reconstruction, or a tiled (volume, info) pair)."""
+    if isinstance(result, tuple):
+        return int(sum(result[1]["iterations"]))
+    return int(result.info.get("psf_refine", {}).get("iterations_total") or result.iterations)

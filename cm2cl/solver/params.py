@@ -223,12 +223,16 @@ class ADMMParams:
     l1_scale: float = _param(
         1.0, _POS, "Multiplier of the l1 weight, given or by the rule (the PSF refinement's rounds use it).")
     # None: a clear sample; the PSF is a clear-medium calibration (cm2cl.solver.attenuation)
-    scattering_length_um: float | None = _param(
-        None, _POS, "Scattering mean free path l_s of the sample: each plane's PSF is scaled by the ballistic fraction "
+    scattering_length_um: float | str | None = _param(
+        None, {**_POS, "words": ("auto",)},
+        "Scattering mean free path l_s of the sample: each plane's PSF is scaled by the ballistic fraction "
         "exp(-d / l_s) of its depth d below the surface (surface_um), so that the volume holds the emitters' "
         "brightness before the sample's attenuation (a deep emitter reads as bright as a shallow one); needs the "
-        "planes' depths (info['attenuation']).", unit="um", flag=True,
-        auto="no attenuation (a clear sample, or a PSF measured in it)")
+        "planes' depths (info['attenuation']). 'auto': l_s estimated from the solved volume, from how its "
+        "emitters' light falls with depth (cm2cl.analysis.attenuation: it assumes emitters as bright at every "
+        "depth), and each plane divided by its ballistic fraction where the fall is significant "
+        "(info['attenuation']['estimate']); not for a series (give the number a frame's estimate found).",
+        unit="um", flag=True, auto="no attenuation (a clear sample, or a PSF measured in it)")
     surface_um: float | None = _param(
         None, {"type": "float"}, "Depth of the sample's surface, in the planes' depth units (with "
         "scattering_length_um; depth increases with z).", unit="um", flag=True, auto="the shallowest plane")
