@@ -272,3 +272,36 @@ def test_auto_on_the_command_line_and_in_tiles(rt, tmp_path, capsys):
     want, _ = reconstruct_tiled(y, psf, (48, 48), max_iter=40, depths_um=depths,
                                 scattering_length_um=est["scattering_length_um"], surface_um=est["surface_um"])
     np.testing.assert_array_equal(got, want)
+
+
+def test_cli_analyze_scattering(tmp_path, capsys):
+    """`cm2cl analyze scattering` on a volume of blobs dimmed with depth (l_s 300 um, a reconstruction's OME-TIFF
+    with its depths): the estimate of the Python function, the table's fitted line through the planes' medians,
+    the figure; a volume without depths is refused in one line, with no output."""
+    import csv
+    import json
+
+    from cm2cl import io
+    from cm2cl.analysis.attenuation import estimate_scattering_length
+    from cm2cl.cli import main
+
+    vol, z = _blob_volume(300.0)
+    io.write_tiff(tmp_path / "vol.ome.tif", vol.astype(np.float32), voxel_size_um=(100.0, 5.0, 5.0), depths_um=z)
+    out = tmp_path / "sc"
+    assert main(["analyze", "scattering", str(tmp_path / "vol.ome.tif"), "-o", str(out)]) == 0
+    want = estimate_scattering_length(vol.astype(np.float32), z)["scattering_length_um"]
+    assert f"scattering length {want:.0f} um" in capsys.readouterr().out
+    rec = json.loads((out / "analysis.json").read_text())
+    assert rec["scattering_length_um"] == pytest.approx(want) and rec["scattering_length_um"] == pytest.approx(300, rel=0.1)
+    with open(out / "scattering.csv") as f:
+        table = list(csv.reader(f))
+    assert table[0] == ["plane", "depth_um", "emitters", "median_log_flux", "fitted_log_flux"] and len(table) == 9
+    fitted = np.array([float(r[4]) for r in table[1:]])
+    np.testing.assert_allclose(np.diff(fitted) / 100.0, -1.0 / want, rtol=1e-9)   # the line, slope -1 / l_s
+    assert (out / "scattering.png").stat().st_size > 1000
+    import tifffile
+
+    tifffile.imwrite(tmp_path / "bare.tif", vol.astype(np.float32))
+    assert main(["analyze", "scattering", str(tmp_path / "bare.tif"), "-o", str(tmp_path / "x")]) != 0
+    err = capsys.readouterr().err
+    assert "no depths in um" in err and len(err.strip().splitlines()) == 1 and not (tmp_path / "x").exists()

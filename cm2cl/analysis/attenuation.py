@@ -86,8 +86,9 @@ def estimate_scattering_length(volume, depths_um, surface_um: float | None = Non
 
     Returns a dict: ``scattering_length_um`` (the estimate to apply, or None where none is: no decay, too
     little, or too few emitters), ``rate_per_um`` k and its bootstrap 95% interval ``rate_interval_per_um``,
-    ``fall_over_stack`` (1 - exp(-k D)), ``surface_um``, ``emitters`` and ``planes`` used, ``rounds``, ``reason``
-    (why nothing is applied, else None) and the rule's constants."""
+    ``fall_over_stack`` (1 - exp(-k D)), ``surface_um``, ``emitters`` and ``planes`` used, ``per_plane`` (each
+    used plane's depth, emitters and median log flux in the volume as given), ``rounds``, ``reason`` (why nothing
+    is applied, else None) and the rule's constants."""
     v0 = np.asarray(volume, np.float64)
     z = np.asarray(depths_um, np.float64).ravel()
     if v0.ndim != 3:
@@ -97,7 +98,7 @@ def estimate_scattering_length(volume, depths_um, surface_um: float | None = Non
     top = float(z.min()) if surface_um is None else float(surface_um)
     d = np.clip(z - top, 0.0, None)
     out = {"scattering_length_um": None, "rate_per_um": None, "rate_interval_per_um": None, "fall_over_stack": None,
-           "surface_um": top, "emitters": 0, "planes": 0, "rounds": 0, "reason": None,
+           "surface_um": top, "emitters": 0, "planes": 0, "per_plane": [], "rounds": 0, "reason": None,
            "rule": {"threshold": threshold, "min_per_plane": min_per_plane, "min_fall": min_fall,
                     "half_box": list(HALF_BOX), "n_boot": n_boot}}
     if v0.shape[0] < 2 * END_PLANES + 3 or d.max() <= 0 or v0.max() <= 0:
@@ -118,9 +119,12 @@ def estimate_scattering_length(volume, depths_um, surface_um: float | None = Non
     boot = [b for b in (_rate(iz[s], lf[s], d, min_per_plane) for s in
                         (rng.integers(0, len(iz), len(iz)) for _ in range(n_boot))) if b is not None]
     lo, hi = (float(base + q) for q in np.quantile(boot, [0.025, 0.975]))
-    planes = sum(np.count_nonzero(iz == i) >= min_per_plane for i in np.unique(iz))
+    used = [int(i) for i in np.unique(iz) if np.count_nonzero(iz == i) >= min_per_plane]
+    # each plane's median log flux in the volume as solved (the last round's brightening taken back out)
+    per_plane = [{"plane": i, "depth_um": float(z[i]), "emitters": int(np.count_nonzero(iz == i)),
+                  "median_log_flux": float(np.median(lf[iz == i]) - (k - step) * d[i])} for i in used]
     out.update(rate_per_um=float(k), rate_interval_per_um=[lo, hi], fall_over_stack=float(1 - np.exp(-k * d.max())),
-               emitters=int(len(iz)), planes=int(planes), rounds=r + 1)
+               emitters=int(len(iz)), planes=len(used), rounds=r + 1, per_plane=per_plane)
     if k <= 0:
         out["reason"] = "the emitters' light does not fall with depth"
     elif 1.0 - np.exp(-lo * d.max()) < min_fall:

@@ -19,6 +19,11 @@ writing a table, a record and a figure into one output folder (published whole).
   PCC, over the whole sensor and over the central lenslet's focus; the foci each PSF holds give the regions
   (central 3x3, outer 2x3 / 3x2, corner 2x2): ``pcc_map.csv``, ``pcc_map.png`` (both maps with the regions'
   boundaries), ``analysis.json`` (mean PCC per region, the diameter where the central lenslet's PCC > 0.7).
+- ``cm2cl analyze scattering VOL.ome.tif -o OUT/``: the sample's scattering length l_s from how the light of a
+  reconstruction's emitters falls with depth (:mod:`cm2cl.analysis.attenuation`; the volume reconstructed with a
+  clear-medium PSF, the emitters as bright at every depth): ``scattering.csv`` (each plane's emitters and
+  median log flux beside the fitted line), ``scattering.png``, ``analysis.json``; the number to give
+  ``--scattering-length-um`` (e.g. for a series, whose frames share one model).
 - ``cm2cl analyze sbr MEAS.tif -o OUT/``: the local signal-to-background ratio of a raw measurement on
   500 x 500 um patches (Fig. 5B), particle pixels found per patch (5 robust sigmas above its median):
   ``sbr.csv``, ``sbr.png`` (the map), ``analysis.json``."""
@@ -39,7 +44,7 @@ RECORD = "analysis.json"
 
 
 def register(sub):
-    a = sub.add_parser("analyze", help="characterise a PSF stack (pcc, mtf), a lateral PSF scan (pcc-map), a reconstruction (particles, depth-range) or a raw "
+    a = sub.add_parser("analyze", help="characterise a PSF stack (pcc, mtf), a lateral PSF scan (pcc-map), a reconstruction (particles, depth-range, scattering) or a raw "
                                        "frame (sbr)",
                        description=__doc__)
     kinds = a.add_subparsers(dest="kind", metavar="KIND", required=True)
@@ -106,7 +111,13 @@ def register(sub):
     g.add_argument("--patch-px", type=int, default=None, help="patch side in pixels instead")
     r.add_argument("--sigmas", type=float, default=5.0,
                    help="particle pixels lie this many robust sigmas above their patch's median (default 5)")
-    for s in (p, m, t, q, d, r):
+    c = kinds.add_parser("scattering", help="the sample's scattering length from how a reconstruction's emitters' "
+                                            "light falls with depth")
+    c.add_argument("volume", help="a reconstruction made with a clear-medium PSF (OME-TIFF with its depths)")
+    c.add_argument("-o", "--output", required=True, help="output folder")
+    c.add_argument("--surface-um", type=float, default=None, help="depth of the sample's surface (default: the "
+                                                                   "shallowest plane)")
+    for s in (p, m, t, q, d, r, c):
         s.set_defaults(func=command)
     return a
 
@@ -116,7 +127,7 @@ def command(args) -> int:
     from ..io.staging import StagedOutput
 
     src = {"pcc": "psf", "pcc-map": "grid", "mtf": "psf", "particles": "volume", "depth-range": "volume",
-           "sbr": "measurement"}[args.kind]
+           "scattering": "volume", "sbr": "measurement"}[args.kind]
     data, meta = io.read_tiff(getattr(args, src), memmap=args.kind == "pcc-map")
     want = {"sbr": (2,), "pcc-map": (3, 4)}.get(args.kind, (3,))
     if data.ndim not in want:
@@ -135,6 +146,8 @@ def command(args) -> int:
         result = _pcc(args, data, meta)
     elif args.kind == "mtf":
         result = _mtf(args, data, meta)
+    elif args.kind == "scattering":
+        result = _scattering(args, data, meta)
     else:
         if not 0 < args.threshold < 1:
             raise InputError(f"--threshold: {args.threshold} is not between 0 and 1")
@@ -408,6 +421,34 @@ def _particles(args, vol, meta) -> dict:
             "columns": cols, "rows": [[r[c] for c in cols] for r in rows], "png": ("particles", rows), "say": say}
 
 
+def _scattering(args, vol, meta) -> dict:
+    from ..analysis.attenuation import estimate_scattering_length
+
+    z, unit = _depths(meta, vol.shape[0])
+    if unit != "um":
+        raise InputError(f"volume '{args.volume}': no depths in um (a cm2cl reconstruction records them), so no "
+                         "depth below the surface")
+    if args.surface_um is not None and not math.isfinite(args.surface_um):
+        raise InputError(f"--surface-um: must be a number, got {args.surface_um}")
+    e = estimate_scattering_length(vol, z, args.surface_um)
+    k = e["rate_per_um"]
+    cols = ["plane", "depth_um", "emitters", "median_log_flux", "fitted_log_flux"]
+    rows = []
+    if e["per_plane"]:   # the fitted line through the planes' median
+        mid = float(np.median([p["median_log_flux"] + k * (p["depth_um"] - e["surface_um"]) for p in e["per_plane"]]))
+        rows = [[p["plane"], p["depth_um"], p["emitters"], p["median_log_flux"],
+                 mid - k * (p["depth_um"] - e["surface_um"])] for p in e["per_plane"]]
+    ls = e["scattering_length_um"]
+    if ls is not None:
+        lo, hi = (1.0 / v for v in e["rate_interval_per_um"][::-1])
+        say = (f"{args.output}: scattering length {ls:.0f} um (95%: {lo:.0f}-{hi:.0f} um) from {e['emitters']} "
+               f"emitters in {e['planes']} planes; their light falls {100 * e['fall_over_stack']:.0f}% over the stack")
+    else:
+        say = f"{args.output}: no scattering length: {e['reason']} ({e['emitters']} emitters)"
+    return {"what": "cm2cl analyze scattering", "volume": str(args.volume), **e, "table": "scattering.csv",
+            "figure": "scattering.png", "columns": cols, "rows": rows, "png": ("scattering", rows, e), "say": say}
+
+
 def _sbr(args, img, meta) -> dict:
     from ..analysis.metrics import raw_sbr
 
@@ -473,6 +514,21 @@ def _draw_pcc_map(fig, r, unit):
                      else None)
 
 
+def _draw_scattering(fig, rows, e):
+    """Each plane's median log flux against depth (marker size: its emitters) and the fitted line."""
+    ax = fig.add_subplot(1, 1, 1)
+    if rows:
+        r = np.asarray([row[1:] for row in rows], float)
+        ax.scatter(r[:, 0], r[:, 2], s=10 + 2 * r[:, 1], label="median per plane (size: emitters)")
+        ax.plot(r[:, 0], r[:, 3], "k-", lw=1, label="fit" + (f": l_s {e['scattering_length_um']:.0f} um"
+                                                             if e["scattering_length_um"] else " (not applied)"))
+        ax.legend()
+    ax.set_xlabel("depth (um)")
+    ax.set_ylabel("log flux of an emitter")
+    if e["reason"]:
+        ax.set_title(e["reason"], fontsize=8)
+
+
 def figure(spec, path):
     """The PNG of the analysis, or None (with why in the record) without matplotlib."""
     try:
@@ -522,6 +578,8 @@ def figure(spec, path):
         ax.set_xlabel("x (mm)")
         ax.set_ylabel("y (mm)")
         fig.colorbar(im, ax=ax, label=f"depth range (um, {n:g}-um patches)")
+    elif spec[0] == "scattering":
+        _draw_scattering(fig, *spec[1:])
     elif spec[0] == "sbr":
         _, m, n = spec
         ax = fig.add_subplot(1, 1, 1)

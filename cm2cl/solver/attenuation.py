@@ -43,8 +43,8 @@ def check(params, depths_um, nz: int, series: bool = False) -> bool:
     ls = getattr(params, "scattering_length_um", None)
     if series and ls == AUTO:
         raise InputError("scattering_length_um: 'auto' is estimated from one solved volume, and a series solves every "
-                         "frame with one model; estimate it on a frame (cm2cl reconstruct --scattering-length-um auto: "
-                         "info.attenuation of its record) and give the series that number")
+                         "frame with one model; estimate it on a frame (cm2cl reconstruct --scattering-length-um auto, or "
+                         "cm2cl analyze scattering on a reconstruction) and give the series that number")
     if ls is None:
         if getattr(params, "surface_um", None) is not None:
             raise InputError("surface_um: only with a scattering length (the surface is where the attenuation starts)")
