@@ -231,16 +231,57 @@ def test_auto_is_the_solve_with_the_estimated_length(rt):
     np.testing.assert_array_equal(rec.volume, cm2cl.reconstruct(y, psf, **kw).volume)
 
 
-def test_auto_is_refused_for_a_series_and_without_depths(rt, tmp_path):
-    psf, y, depths, _ = _auto_scene(250.0)
-    with pytest.raises(InputError, match="'auto' is estimated from one solved volume"):
-        cm2cl.reconstruct_series(np.stack([y, y]), psf, tmp_path / "s.ome.zarr", depths_um=depths,
-                                 scattering_length_um="auto")
-    assert not (tmp_path / "s.ome.zarr").exists()
+def test_a_series_takes_frame_0s_estimate_and_reads_it_back(rt, tmp_path, capsys, monkeypatch):
+    """A series with 'auto' estimates l_s once, on frame 0, as a single frame's 'auto' does (the same number),
+    solves every frame with it (frame 1 equals the single-frame solve given the number), keeps it in the store's
+    record, and a resumed job reads it back without solving frame 0 again; the command line says what frame 0
+    gave. Without depths it is refused before a store exists."""
+    import tifffile
+
+    from cm2cl import io
+    from cm2cl.cli import main
+    from cm2cl.jobs.store import read_record
+    from cm2cl.solver import attenuation
+
+    psf, y, depths, _ = _auto_scene(500.0)
+    kw = dict(depths_um=depths, psf_refine=0, max_iter=150)
+    frames = np.stack([y, 0.9 * y])
+    out = tmp_path / "s.ome.zarr"
+    s = cm2cl.reconstruct_series(frames, psf, out, scattering_length_um="auto", **kw)
+    assert s.computed == 2
+    att = read_record(out)["attenuation"]
+    one = cm2cl.reconstruct(y, psf, scattering_length_um="auto", **kw).info["attenuation"]
+    assert att["scattering_length_um"] is not None
+    assert att["scattering_length_um"] == pytest.approx(one["scattering_length_um"], rel=1e-12)
+    import zarr
+
+    vol = np.asarray(zarr.open_group(str(out), mode="r")["0"])
+    want = cm2cl.reconstruct(frames[1], psf, scattering_length_um=att["scattering_length_um"],
+                             surface_um=att["surface_um"], **kw).volume
+    np.testing.assert_array_equal(vol[1], want)
+
+    def no_solve(*a, **k):
+        raise AssertionError("frame 0 solved again on a resume")
+
+    monkeypatch.setattr(attenuation, "estimate_on", no_solve)
+    assert cm2cl.reconstruct_series(frames, psf, out, scattering_length_um="auto", **kw).skipped == 2
+    monkeypatch.undo()
+    with pytest.raises(InputError, match="scattering_length_um: needs the planes' depths"):
+        cm2cl.reconstruct_series(frames, psf, tmp_path / "n.ome.zarr", scattering_length_um="auto")
+    assert not (tmp_path / "n.ome.zarr").exists()
     with pytest.raises(InputError, match="scattering_length_um: needs the planes' depths"):
         cm2cl.reconstruct(y, psf, scattering_length_um="auto")
     with pytest.raises(InputError, match="scattering_length_um"):
         cm2cl.reconstruct(y, psf, scattering_length_um="estimate", depths_um=depths)
+    io.write_tiff(tmp_path / "psf.ome.tif", psf.astype(np.float32), voxel_size_um=(100.0, 2.0, 2.0),
+                  depths_um=depths)
+    tifffile.imwrite(tmp_path / "frames.tif", frames.astype(np.float32))
+    assert main(["reconstruct", str(tmp_path / "frames.tif"), "--psf", str(tmp_path / "psf.ome.tif"), "-o",
+                 str(tmp_path / "c.ome.zarr"), "--scattering-length-um", "auto", "--psf-refine", "0",
+                 "--max-iter", "150"]) == 0
+    err = capsys.readouterr().err
+    ls = read_record(tmp_path / "c.ome.zarr")["attenuation"]["scattering_length_um"]
+    assert f"frame 0: scattering length estimated {ls:.0f} um" in err
 
 
 def test_auto_on_the_command_line_and_in_tiles(rt, tmp_path, capsys):

@@ -23,7 +23,7 @@ writing a table, a record and a figure into one output folder (published whole).
   reconstruction's emitters falls with depth (:mod:`cm2cl.analysis.attenuation`; the volume reconstructed with a
   clear-medium PSF, the emitters as bright at every depth): ``scattering.csv`` (each plane's emitters and
   median log flux beside the fitted line), ``scattering.png``, ``analysis.json``; the number to give
-  ``--scattering-length-um`` (e.g. for a series, whose frames share one model).
+  ``--scattering-length-um``.
 - ``cm2cl analyze sbr MEAS.tif -o OUT/``: the local signal-to-background ratio of a raw measurement on
   500 x 500 um patches (Fig. 5B), particle pixels found per patch (5 robust sigmas above its median):
   ``sbr.csv``, ``sbr.png`` (the map), ``analysis.json``."""

@@ -290,11 +290,11 @@ def attenuation_line(record) -> str:
     found = (f"{est['emitters']} emitters in {est['planes']} planes, their light falls "
              f"{100 * est['fall_over_stack']:.0f}% over the stack" if k else f"{est['emitters']} emitters")
     if record["scattering_length_um"] is None:
-        return f"scattering length not estimated: {est['reason']} ({found}); the volume is as solved"
+        return f"scattering length not estimated: {est['reason']} ({found}); the clear-medium answer stands"
     lo, hi = (1.0 / v if v > 0 else float("inf") for v in k[::-1])
+    a = record.get("ballistic_fraction")
     return (f"scattering length estimated {record['scattering_length_um']:.0f} um (95%: {lo:.0f}-{hi:.0f}) from "
-            f"{found}; each plane divided by its ballistic fraction (deepest "
-            f"{min(record['ballistic_fraction']):.3f})")
+            f"{found}; solved with it" + (f" (the deepest plane keeps {min(a):.3f} of its light)" if a else ""))
 
 
 def _report(out, outset, rec, how, vol):

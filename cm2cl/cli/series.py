@@ -50,8 +50,9 @@ def command(args, params: ADMMParams) -> int:
     h, solver_kw, prep = _grid(args, wp.h, off, psf_off, ex.devices[0])
     dt = np.dtype(args.dtype)
     from ..solver import attenuation
+    from ..solver.attenuation import AUTO
 
-    attenuation.check(params, wp.depths_um, h.shape[0], series=True)   # before the store exists
+    attenuation.check(params, wp.depths_um, h.shape[0])   # before the store exists
     key = fingerprint(h, params, series, dt, args.backend, prep)
     shape = (h.shape[0],) + tuple(n // args.bin for n in series.shape)
     if not args.scheduler:   # a frame that cannot fit (--stream never, --max-memory) is refused before the store
@@ -71,6 +72,15 @@ def command(args, params: ADMMParams) -> int:
         record["psf_refined"] = str(refined_psf_path(out))
     t0 = time.perf_counter()
     frame_prep = lambda a: prepare(a, offset=off, bin_factor=args.bin, name="measurement")  # noqa: E731
+    if params.scattering_length_um == AUTO:   # frame 0's estimate for every frame (read back on a resume)
+        from ..jobs.refine import series_attenuation
+        from .frame import attenuation_line
+
+        params, record["attenuation"] = series_attenuation(
+            out, key, series, h, frame_prep, params, voxel_size_um=wp.voxel_size_um, depths_um=wp.depths_um,
+            solve_kw={"dtype": dt, "backend": args.backend, "device": devices_arg(args.device)[0], **solver_kw})
+        if not args.quiet:
+            print("cm2cl: frame 0: " + attenuation_line(record["attenuation"]), file=sys.stderr)
     with FrameStore.open(out, fingerprint=key, n_frames=len(series), volume_shape=shape, dtype=dt,
                          voxel_size_um=wp.voxel_size_um, depths_um=wp.depths_um, record=record,
                          channel=args.channel, frame_interval_s=args.frame_interval, levels=args.pyramid,

@@ -3,7 +3,11 @@ series' first frame (:mod:`cm2cl.solver.psf_refine`), kept beside the store as `
 job's fingerprint. A resumed job reads it back, so that every frame of a store is solved with the same
 stack; a store with finished frames and no such file (deleted, or another job's) is refused before any
 work. With ``psf_refine='auto'`` frame 0's check decides whether the stack is refined per lenslet or by one
-common kernel (:func:`cm2cl.reconstruct`); either way the stack is written. Used by ``cm2cl reconstruct FRAMES -o OUT.ome.zarr --psf-refine N`` and :func:`reconstruct_series`."""
+common kernel (:func:`cm2cl.reconstruct`); either way the stack is written. Used by ``cm2cl reconstruct FRAMES -o OUT.ome.zarr --psf-refine N`` and :func:`reconstruct_series`.
+
+Likewise ``scattering_length_um='auto'`` (:func:`series_attenuation`): l_s is estimated once, on frame 0 (as
+:func:`cm2cl.reconstruct` estimates it for one frame), every frame is solved with that number, and the store's
+record keeps it, so that a resumed job reads it back instead of estimating again."""
 
 from __future__ import annotations
 
@@ -17,7 +21,7 @@ from ..errors import InputError
 
 log = logging.getLogger(__name__)
 
-__all__ = ["refined_psf_path", "series_psf"]
+__all__ = ["refined_psf_path", "series_psf", "series_attenuation"]
 
 
 def refined_psf_path(output) -> Path:
@@ -79,3 +83,36 @@ def _missing(path, output):
     raise InputError(f"psf_refine: '{path}', the refined PSF stack the finished frames of '{output}' were "
                      "solved with, is missing or belongs to another job; put it back, or reconstruct into a "
                      "new store")
+
+
+def series_attenuation(output, key: str, series, h, prepare, params, *, solve_kw: dict, voxel_size_um=None,
+                       depths_um=None) -> tuple:
+    """For ``params.scattering_length_um == 'auto'``: (the parameters every frame is solved with, l_s and the
+    surface fixed to frame 0's estimate, or no attenuation where it does not apply; the record of the estimate
+    for the store). A store of this job (``key``) that records an estimate gives it back without a solve;
+    otherwise frame 0 is solved with the clear-medium model (``params`` otherwise, ``solve_kw`` the rest of
+    :func:`cm2cl.reconstruct`'s keywords) and l_s estimated from its volume
+    (:func:`cm2cl.solver.attenuation.estimate_on`)."""
+    from dataclasses import replace
+
+    from ..solver import reconstruct
+    from ..solver.attenuation import estimate_on
+    from .store import read_record
+
+    record = None
+    if Path(output).exists():
+        try:
+            old = read_record(output)
+        except Exception:  # noqa: BLE001 - not a store: opening it says why
+            old = {}
+        if old.get("fingerprint") == key and isinstance(old.get("attenuation"), dict):
+            record = old["attenuation"]
+            log.info("the scattering length estimated on frame 0 is read back from '%s'", output)
+    if record is None:
+        log.info("estimating the scattering length on frame 0")
+        call = {"measurement": prepare(series.read(0)), "psf": h, "voxel_size_um": voxel_size_um,
+                "depths_um": depths_um, **solve_kw, **params.as_dict()}
+        _, record = estimate_on(reconstruct, lambda r: r.volume, depths_um, params, call)
+    ls = record["scattering_length_um"]
+    return replace(params, scattering_length_um=ls, surface_um=record["surface_um"] if ls is not None else None), \
+        record

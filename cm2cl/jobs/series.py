@@ -79,14 +79,21 @@ def reconstruct_series(frames, psf, output, *, client=None, devices=None, warm_s
     prep = {"offset": offset, "bin": 1, "padding": "full", "warm_start": bool(warm_start),
             "padded_shape": solver_kw.get("padded_shape")}
     from ..solver import attenuation
+    from ..solver.attenuation import AUTO
 
-    attenuation.check(prm, d, h.shape[0], series=True)   # before the store exists
+    attenuation.check(prm, d, h.shape[0])   # before the store exists
     key = fingerprint(h, prm, series, dt, backend, prep)
     record = {"what": "cm2cl reconstruction series (Python)", "params": prm.as_dict(), "prep": prep,
               "frames": [f"{f.path}[{f.index}]" for f in series.frames[:1000]]}
     from ..io.prepare import prepare
 
     frame_prep = lambda a: prepare(a, offset=offset, name="frame")  # noqa: E731
+    if prm.scattering_length_um == AUTO:   # frame 0's estimate for every frame (read back on a resume)
+        from .refine import series_attenuation
+
+        prm, record["attenuation"] = series_attenuation(
+            output, key, series, h, frame_prep, prm, voxel_size_um=vs, depths_um=d,
+            solve_kw={"dtype": dt, "backend": backend, "device": (devices or [None])[0], **solver_kw})
     with FrameStore.open(output, fingerprint=key, n_frames=len(series), volume_shape=h.shape, dtype=dt,
                          voxel_size_um=vs, depths_um=d, record=record, channel=channel,
                          frame_interval_s=frame_interval_s, levels=pyramid, ngff=ngff) as store:

@@ -23,7 +23,7 @@ import numpy as np
 
 from ..errors import InputError
 
-__all__ = ["AUTO", "ballistic_fractions", "check", "attenuate", "unattenuate", "solve_estimated"]
+__all__ = ["AUTO", "ballistic_fractions", "check", "attenuate", "unattenuate", "estimate_on", "solve_estimated"]
 
 #: the word of ``scattering_length_um`` that estimates it from the solved volume
 AUTO = "auto"
@@ -36,15 +36,10 @@ def ballistic_fractions(depths_um, scattering_length_um: float, surface_um: floa
     return np.exp(-np.clip(z - top, 0.0, None) / float(scattering_length_um))
 
 
-def check(params, depths_um, nz: int, series: bool = False) -> bool:
+def check(params, depths_um, nz: int) -> bool:
     """Whether ``params`` ask for attenuation, after checking that they can have it (one-line InputErrors:
-    a surface without a scattering length, no depths, depths that do not match the planes, 'auto' for a
-    ``series``, whose frames share one model)."""
+    a surface without a scattering length, no depths, depths that do not match the planes)."""
     ls = getattr(params, "scattering_length_um", None)
-    if series and ls == AUTO:
-        raise InputError("scattering_length_um: 'auto' is estimated from one solved volume, and a series solves every "
-                         "frame with one model; estimate it on a frame (cm2cl reconstruct --scattering-length-um auto, or "
-                         "cm2cl analyze scattering on a reconstruction) and give the series that number")
     if ls is None:
         if getattr(params, "surface_um", None) is not None:
             raise InputError("surface_um: only with a scattering length (the surface is where the attenuation starts)")
@@ -83,12 +78,11 @@ def unattenuate(psf, record) -> np.ndarray:
 
 
 
-def solve_estimated(solve, volume_of, depths_um, params, call: dict) -> tuple:
-    """``scattering_length_um='auto'``: ``solve(**call, scattering_length_um=None)`` (the clear-medium
-    model), l_s estimated from its volume (``volume_of(result)``; :mod:`cm2cl.analysis.attenuation`), then,
-    where the estimate applies, ``solve(**call, scattering_length_um=estimate)``: the answer a user giving
-    that number gets. Returns (the result, its ``attenuation`` record with ``estimate``: the estimator's
-    dict and the first solve's iterations)."""
+def estimate_on(solve, volume_of, depths_um, params, call: dict) -> tuple:
+    """``solve(**call)`` with the clear-medium model (``call`` without its scattering length and surface) and
+    l_s estimated from its volume (``volume_of(result)``; :mod:`cm2cl.analysis.attenuation`). Returns (that
+    result, the record: ``attenuate``'s keys, the fractions all 1 where the estimate does not apply, and
+    ``estimate``: the estimator's dict and the clear-medium solve's iterations)."""
     from ..analysis.attenuation import estimate_scattering_length
 
     z = np.asarray(depths_um, np.float64).ravel()
@@ -97,13 +91,21 @@ def solve_estimated(solve, volume_of, depths_um, params, call: dict) -> tuple:
     est = estimate_scattering_length(volume_of(first), z, params.surface_um)
     est["first_solve_iterations"] = _iterations(first)
     ls = est["scattering_length_um"]
-    if ls is None:
-        return first, {"scattering_length_um": None, "surface_um": est["surface_um"],
-                       "ballistic_fraction": [1.0] * z.size, "estimate": est}
-    out = solve(**clear, scattering_length_um=ls, surface_um=est["surface_um"])
-    return out, {"scattering_length_um": ls, "surface_um": est["surface_um"],
-                 "ballistic_fraction": [float(v) for v in ballistic_fractions(z, ls, est["surface_um"])],
-                 "estimate": est}
+    a = ballistic_fractions(z, ls, est["surface_um"]) if ls is not None else np.ones(z.size)
+    return first, {"scattering_length_um": ls, "surface_um": est["surface_um"],
+                   "ballistic_fraction": [float(v) for v in a], "estimate": est}
+
+
+def solve_estimated(solve, volume_of, depths_um, params, call: dict) -> tuple:
+    """``scattering_length_um='auto'``: :func:`estimate_on`, then, where the estimate applies,
+    ``solve(**call, scattering_length_um=estimate)``: the answer a user giving that number gets. Returns (the
+    result, its ``attenuation`` record)."""
+    first, record = estimate_on(solve, volume_of, depths_um, params, call)
+    if record["scattering_length_um"] is None:
+        return first, record
+    clear = {k: v for k, v in call.items() if k not in ("scattering_length_um", "surface_um")}
+    return solve(**clear, scattering_length_um=record["scattering_length_um"], surface_um=record["surface_um"]), \
+        record
 
 
 def _iterations(result):

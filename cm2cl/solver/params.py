@@ -231,7 +231,7 @@ class ADMMParams:
         "planes' depths (info['attenuation']). 'auto': l_s estimated from the solved volume, from how its "
         "emitters' light falls with depth (cm2cl.analysis.attenuation: it assumes emitters as bright at every "
         "depth), and each plane divided by its ballistic fraction where the fall is significant "
-        "(info['attenuation']['estimate']); not for a series (give the number a frame's estimate found).",
+        "(info['attenuation']['estimate']); a series estimates it once, on frame 0, for every frame.",
         unit="um", flag=True, auto="no attenuation (a clear sample, or a PSF measured in it)")
     surface_um: float | None = _param(
         None, {"type": "float"}, "Depth of the sample's surface, in the planes' depth units (with "
