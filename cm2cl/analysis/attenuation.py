@@ -118,6 +118,9 @@ def estimate_scattering_length(volume, depths_um, surface_um: float | None = Non
     rng = np.random.default_rng(seed)
     boot = [b for b in (_rate(iz[s], lf[s], d, min_per_plane) for s in
                         (rng.integers(0, len(iz), len(iz)) for _ in range(n_boot))) if b is not None]
+    if len(boot) < n_boot // 2:   # most resamples leave fewer than 3 planes of enough maxima
+        out["reason"] = f"too few maxima for a stable fit ({len(boot)} of {n_boot} resamples fit a line)"
+        return {**out, "emitters": int(len(iz)), "rounds": r + 1}
     lo, hi = (float(base + q) for q in np.quantile(boot, [0.025, 0.975]))
     used = [int(i) for i in np.unique(iz) if np.count_nonzero(iz == i) >= min_per_plane]
     # each plane's median log flux in the volume as solved (the last round's brightening taken back out)
