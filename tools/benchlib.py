@@ -65,3 +65,17 @@ def with_hand_written(text: str, path: Path) -> str:
     old = path.read_text()
     m = re.search(r"^## [^\n]*\(hand-written", old, re.M)
     return text + "\n" + old[m.start():] if m else text
+
+
+def residual(psf, y, rec) -> float:
+    """||C H x - y|| / ||y|| in float64 with the PSF the final solve used (the given one, or the refined one
+    ``rec.psf`` after a PSF refinement), plus the reconstruction's own 2D background estimate,
+    ``rec.background``, where it has one."""
+    from cm2cl import reference
+
+    h = rec.psf if getattr(rec, "psf", None) is not None else psf
+    yh = reference.forward(h, rec.volume_padded, rec.volume_padded.shape[1:])
+    b = getattr(rec, "background", None)
+    if isinstance(b, np.ndarray) and b.shape == yh.shape:
+        yh = yh + b
+    return float(np.linalg.norm(yh - y) / np.linalg.norm(y))

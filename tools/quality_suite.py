@@ -48,6 +48,7 @@ if str(ROOT) not in sys.path:
 
 import cm2cl  # noqa: E402
 from cm2cl.analysis import quality as Q  # noqa: E402
+from benchlib import residual  # noqa: E402
 
 DOCS = ROOT / "docs"
 SETTINGS = ("50", "200", "converged", "defaults")
@@ -172,20 +173,6 @@ def normalise_configs(configs) -> dict:
 
 
 # ------------------------------------------------------------------------------------------------ running
-def residual(psf, y, rec) -> float:
-    """||C H x - y|| / ||y|| in float64 with the PSF the final solve used (the given one, or the refined one
-    ``rec.psf`` after a PSF refinement), plus the reconstruction's own 2D background estimate,
-    ``rec.background``, where it has one."""
-    from cm2cl import reference
-
-    h = rec.psf if getattr(rec, "psf", None) is not None else psf
-    yh = reference.forward(h, rec.volume_padded, rec.volume_padded.shape[1:])
-    b = getattr(rec, "background", None)
-    if isinstance(b, np.ndarray) and b.shape == yh.shape:
-        yh = yh + b
-    return float(np.linalg.norm(yh - y) / np.linalg.norm(y))
-
-
 def _kwargs(kw: dict, setting: str, camera: dict | None) -> tuple[dict, str]:
     kw = dict(kw)
     frame = kw.pop("suite_frame", "offset-subtracted")
