@@ -161,3 +161,12 @@ def test_a_regenerated_page_keeps_its_hand_written_sections(tmp_path):
     assert with_hand_written("new\n", page) == "new\n\n" + hand
     page.write_text("# T\n\nold table, the word hand-written in a line\n")
     assert with_hand_written("new\n", page) == "new\n"
+    # every tool that rewrites a page with hand-written sections goes through it (reproduce_paper and
+    # diffusercam3d wrote their pages whole, which would have deleted the sections hand-written below)
+    tools = Path(__file__).resolve().parents[1] / "tools"
+    for name in ("fit_optics", "heldout_psf", "relaxation_study", "reproduce_paper", "diffusercam3d"):
+        assert "with_hand_written(" in (tools / f"{name}.py").read_text(), name
+    # reproduce_paper's generated PCC-map section lies above the hand-written ones (below, a regeneration would
+    # keep the old one as if hand-written)
+    text = (Path(__file__).resolve().parents[1] / "docs" / "paper_comparison.md").read_text()
+    assert 0 < text.index("## The lateral PCC map") < text.index("(hand-written")

@@ -42,6 +42,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
+from benchlib import with_hand_written  # noqa: E402
 from cm2cl.analysis.lateral import CENTRAL_PCC_LEVEL, high_pcc_diameter_mm, lateral_pcc_map, region_summary  # noqa: E402
 from cm2cl.analysis.mtf import mtf_analysis  # noqa: E402
 from cm2cl.analysis.particles import SIGMA_MIN_VOX  # noqa: E402
@@ -537,7 +538,7 @@ def write_md(rows, info, path: Path, argv) -> None:
                   "2 x 2). The paper sees the PCC drop sharply at those boundaries. In the model it falls by region (mean " +
                   ", ".join(f"{k} {v['pcc_mean']:.2f}" for k, v in reg.items() if v["pcc_mean"] is not None) +
                   "), and the field aberrations also lower it gradually inside the central region."]
-    path.write_text("\n".join(lines) + "\n")
+    path.write_text(with_hand_written("\n".join(lines) + "\n", path))
 
 
 def _map_png(m, path: Path) -> bool:
