@@ -346,3 +346,13 @@ def test_cli_analyze_scattering(tmp_path, capsys):
     assert main(["analyze", "scattering", str(tmp_path / "bare.tif"), "-o", str(tmp_path / "x")]) != 0
     err = capsys.readouterr().err
     assert "no depths in um" in err and len(err.strip().splitlines()) == 1 and not (tmp_path / "x").exists()
+
+
+def test_the_estimate_says_why_a_stack_cannot_have_one():
+    from cm2cl.analysis.attenuation import estimate_scattering_length
+
+    vol, z = _blob_volume(300.0, nz=6)
+    assert estimate_scattering_length(vol, z)["reason"] == "6 planes: it needs 7 (the 2 at each end are left out)"
+    vol, z = _blob_volume(300.0)
+    assert estimate_scattering_length(vol, z, surface_um=5000.0)["reason"] == "no plane below the surface"
+    assert estimate_scattering_length(0 * vol, z)["reason"] == "an empty volume"

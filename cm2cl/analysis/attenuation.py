@@ -101,8 +101,11 @@ def estimate_scattering_length(volume, depths_um, surface_um: float | None = Non
            "surface_um": top, "emitters": 0, "planes": 0, "per_plane": [], "rounds": 0, "reason": None,
            "rule": {"threshold": threshold, "min_per_plane": min_per_plane, "min_fall": min_fall,
                     "half_box": list(HALF_BOX), "n_boot": n_boot}}
-    if v0.shape[0] < 2 * END_PLANES + 3 or d.max() <= 0 or v0.max() <= 0:
-        out["reason"] = "fewer than 7 planes, none below the surface, or an empty volume"
+    short = (f"{v0.shape[0]} planes: it needs {2 * END_PLANES + 3} (the {END_PLANES} at each end are left out)"
+             if v0.shape[0] < 2 * END_PLANES + 3 else "no plane below the surface" if d.max() <= 0
+             else "an empty volume" if v0.max() <= 0 else None)
+    if short:
+        out["reason"] = short
         return out
     k, step = 0.0, None
     for r in range(rounds):
