@@ -364,6 +364,8 @@ def test_dry_run_counts_the_presets_iterations(rt, tmp_path, capsys):
     assert "for 3000 iterations" in capsys.readouterr().out
     assert main(argv + ["--preset", "best", "--max-iter", "7"]) == 0
     assert "for 7 iterations" in capsys.readouterr().out
+    assert main(argv + ["--scattering-length-um", "auto"]) == 0
+    assert "--scattering-length-um auto: up to twice that" in capsys.readouterr().out
 
 
 def test_a_warning_has_one_cm2cl_prefix_and_v_names_the_module(capsys):

@@ -165,3 +165,6 @@ def _expected(lay, P, dt, backend, params: ADMMParams, moved: int) -> None:
           f"measured now: copy {min(copy.values()) / 1e9:.1f} GB/s"
           + (f", host <-> device {min(xfer.values()) / 1e9:.1f} GB/s" if moved else "")
           + f"; kernels at {KERNEL_FLOOR_RATIO}x the bandwidth floor, as measured on PoCL)")
+    if params.scattering_length_um == "auto":
+        print("  --scattering-length-um auto: up to twice that (a clear-medium solve for the estimate, then the solve "
+              "with it where it applies)")
