@@ -51,7 +51,8 @@ def reconstruct_series(frames, psf, output, *, client=None, devices=None, warm_s
         The solver's parameters, as :func:`cm2cl.reconstruct`. With ``psf_refine`` the PSF is refined on the
         first frame and every frame solved with that stack, kept beside the store as ``OUT.psf.ome.tif``
         (:mod:`cm2cl.jobs.refine`; a resumed job reads it back); with ``psf_refine='auto'`` frame 0's check decides
-        whether the lenslets are refined one by one, once for every frame.
+        whether the lenslets are refined one by one, once for every frame. With ``scattering_length_um='auto'``
+        l_s is estimated on frame 0 and every frame solved with it (the store's record keeps it).
 
     Returns
     -------
