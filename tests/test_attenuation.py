@@ -339,7 +339,12 @@ def test_cli_analyze_scattering(tmp_path, capsys):
     assert table[0] == ["plane", "depth_um", "emitters", "median_log_flux", "fitted_log_flux"] and len(table) == 9
     fitted = np.array([float(r[4]) for r in table[1:]])
     np.testing.assert_allclose(np.diff(fitted) / 100.0, -1.0 / want, rtol=1e-9)   # the line, slope -1 / l_s
-    assert (out / "scattering.png").stat().st_size > 1000
+    assert (out / "scattering.png").stat().st_size > 1000 and rec["solved_with_scattering_length_um"] is None
+    # a reconstruction solved with an attenuation already: the line says the fall is what is left in it
+    io.write_tiff(tmp_path / "att.ome.tif", vol.astype(np.float32), voxel_size_um=(100.0, 5.0, 5.0), depths_um=z,
+                  extra={"info": {"attenuation": {"scattering_length_um": 965.0}}})
+    assert main(["analyze", "scattering", str(tmp_path / "att.ome.tif"), "-o", str(tmp_path / "sc2")]) == 0
+    assert "solved with a scattering length of 965 um already" in capsys.readouterr().out
     import tifffile
 
     tifffile.imwrite(tmp_path / "bare.tif", vol.astype(np.float32))

@@ -445,7 +445,14 @@ def _scattering(args, vol, meta) -> dict:
                f"emitters in {e['planes']} planes; their light falls {100 * e['fall_over_stack']:.0f}% over the stack")
     else:
         say = f"{args.output}: no scattering length: {e['reason']} ({e['emitters']} emitters)"
-    return {"what": "cm2cl analyze scattering", "volume": str(args.volume), **e, "table": "scattering.csv",
+    # a cm2cl reconstruction records the attenuation it was solved with: then this is the decay left over
+    solved = ((meta.get("extra") or {}).get("info") or {}).get("attenuation") or {}
+    before = solved.get("scattering_length_um")
+    if before:
+        say += (f"; note: the volume was solved with a scattering length of {before:.0f} um already, so this is "
+                "the fall left in it, not the sample's")
+    return {"what": "cm2cl analyze scattering", "volume": str(args.volume), **e, "solved_with_scattering_length_um":
+            before, "table": "scattering.csv",
             "figure": "scattering.png", "columns": cols, "rows": rows, "png": ("scattering", rows, e), "say": say}
 
 
