@@ -241,7 +241,6 @@ def test_a_series_takes_frame_0s_estimate_and_reads_it_back(rt, tmp_path, capsys
     from cm2cl import io
     from cm2cl.cli import main
     from cm2cl.jobs.store import read_record
-    from cm2cl.solver import attenuation
 
     psf, y, depths, _ = _auto_scene(500.0)
     kw = dict(depths_um=depths, psf_refine=0, max_iter=150)
@@ -263,7 +262,9 @@ def test_a_series_takes_frame_0s_estimate_and_reads_it_back(rt, tmp_path, capsys
     def no_solve(*a, **k):
         raise AssertionError("frame 0 solved again on a resume")
 
-    monkeypatch.setattr(attenuation, "estimate_on", no_solve)
+    from cm2cl.solver import api
+
+    monkeypatch.setattr(api, "ADMMSolver", no_solve)   # every solve of cm2cl.reconstruct builds one
     assert cm2cl.reconstruct_series(frames, psf, out, scattering_length_um="auto", **kw).skipped == 2
     monkeypatch.undo()
     with pytest.raises(InputError, match="scattering_length_um: needs the planes' depths"):

@@ -86,8 +86,7 @@ def estimate_on(solve, volume_of, depths_um, params, call: dict) -> tuple:
     from ..analysis.attenuation import estimate_scattering_length
 
     z = np.asarray(depths_um, np.float64).ravel()
-    clear = {k: v for k, v in call.items() if k not in ("scattering_length_um", "surface_um")}
-    first = solve(**clear)
+    first = solve(**_clear(call))
     est = estimate_scattering_length(volume_of(first), z, params.surface_um)
     est["first_solve_iterations"] = _iterations(first)
     ls = est["scattering_length_um"]
@@ -103,9 +102,13 @@ def solve_estimated(solve, volume_of, depths_um, params, call: dict) -> tuple:
     first, record = estimate_on(solve, volume_of, depths_um, params, call)
     if record["scattering_length_um"] is None:
         return first, record
-    clear = {k: v for k, v in call.items() if k not in ("scattering_length_um", "surface_um")}
-    return solve(**clear, scattering_length_um=record["scattering_length_um"], surface_um=record["surface_um"]), \
-        record
+    return solve(**_clear(call), scattering_length_um=record["scattering_length_um"],
+                 surface_um=record["surface_um"]), record
+
+
+def _clear(call: dict) -> dict:
+    """A call's keywords without its scattering length and surface: the clear-medium model's."""
+    return {k: v for k, v in call.items() if k not in ("scattering_length_um", "surface_um")}
 
 
 def _iterations(result):
