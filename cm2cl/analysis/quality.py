@@ -509,6 +509,9 @@ def scene_specs(quick: bool = False) -> list[SceneSpec]:
                   mismatch=Mismatch(blur=1.0, dz=0.4), background="haze", bg_level=0.05, photons=800.0, seed=4),
         SceneSpec("fibres_mm", "5 fibres, all mismatches, random background 10%, 800 photons", kind="fibres",
                   mismatch=allm, background="random", bg_level=0.10, photons=800.0, seed=3),
+        SceneSpec("fibres_trunc", "5 fibres, truncated PSF (outer lenslets vignetted by up to 60%, field stop), "
+                  "haze 5%, 800 photons", kind="fibres", mismatch=Mismatch(vignette=0.6), background="haze",
+                  bg_level=0.05, photons=800.0, seed=6),
     ]
     if not quick:
         return base

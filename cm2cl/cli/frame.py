@@ -261,12 +261,14 @@ def refine_line(record) -> str:
         test = (f"the lenslets' views disagree with the PSF (separate kernels explain {check['disagreement']:.3f} "
                 f"of the misfit), but the volume is extended ({check['extended_share']:.2f} of its energy in "
                 f"pieces wider than {EXTENDED_SPOTS:g} spots, threshold {check['extended_threshold']:g}): kernels "
-                "per lenslet would trade shifts with it")
+                "per lenslet would trade shifts with it" + ("; each lenslet's gain fitted alone"
+                                                            if record.get("lenslet_gains_only") else ""))
     if record.get("check_skipped") and record.get("refined"):
         test = f"the lenslets' views not compared ({record['check_skipped']})"
     if record.get("refined"):
         if record["rounds"] > 1:
-            what = f"{record['rounds']} rounds" + (" (one kernel common to every lenslet, then kernels per lenslet)"
+            then = "each lenslet's gain" if record.get("lenslet_gains_only") else "kernels per lenslet"
+            what = f"{record['rounds']} rounds" + (f" (one kernel common to every lenslet, then {then})"
                                                    if record.get("mode") == "auto" else "")
             rw = record.get("reweight")
             if rw:

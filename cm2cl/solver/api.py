@@ -236,10 +236,10 @@ def _refined(solve, y, psf, weights, prm, padded_shape, x0):
     then the view check on the same volume (:func:`.psf_refine.view_disagreement`, kernels per lenslet fitted
     to images of the commonly refined stack): where the lenslets' views disagree and the volume is made of
     points (:func:`.psf_refine.extended_share`) the check's kernels are applied and the rest of
-    ``AUTO_ROUNDS`` rounds of kernels per lenslet follow; where they agree, the volume is extended (kernels per
-    lenslet trade shifts with extended objects), or the PSF has no views to compare
-    (:func:`.psf_refine.check_skipped`), the answer is the 'common' one. A number: that many rounds of kernels
-    per lenslet."""
+    ``AUTO_ROUNDS`` rounds of kernels per lenslet follow; where they disagree and the volume is extended (kernels
+    per lenslet trade shifts with extended objects) ``AUTO_GAIN_ROUNDS`` rounds fit each lenslet's gain alone;
+    where they agree, or the PSF has no views to compare (:func:`.psf_refine.check_skipped`), the answer is the
+    'common' one. A number: that many rounds of kernels per lenslet."""
     from . import psf_refine as R
 
     mode = prm.psf_refine
@@ -252,17 +252,20 @@ def _refined(solve, y, psf, weights, prm, padded_shape, x0):
     inner = R.round_params(replace(prm, psf_refine=n, max_iter=min(prm.psf_refine_iter, prm.max_iter)))
     h = np.asarray(psf, np.float64)
     P, x_start, rounds, check = padded_shape, x0, [], None
+    gains_only = False   # 'auto' on an extended volume whose views disagree: each lenslet's gain alone
     rnd = 0
     while rnd < n:
         scale, nodes = R.round_schedule(rnd, n, prm.psf_refine_l1_start, prm.psf_refine_depth_nodes)
         lab = labels
         if staged and rnd == 0:
             lab, nodes = common_labels, prm.psf_refine_depth_nodes
+        radius = prm.psf_refine_radius
+        if gains_only:
+            radius, nodes = 0, 1
         solver, rec = solve(h, replace(inner, l1_scale=prm.l1_scale * scale), P, x_start)
         P, x_start = solver.P, rec.volume_padded
         b = rec.background if rec.background is not None else 0.0
-        h_new, k, misfit = R.refine_step(h, lab, rec.volume_padded, y - b, prm.psf_refine_radius, w,
-                                         depth_nodes=nodes)
+        h_new, k, misfit = R.refine_step(h, lab, rec.volume_padded, y - b, radius, w, depth_nodes=nodes)
         empty = misfit >= R.EMPTY_MISFIT
         if empty:   # the round's volume explains (almost) none of the data: there is nothing to fit kernels to
             k = np.zeros_like(k)
@@ -299,11 +302,13 @@ def _refined(solve, y, psf, weights, prm, padded_shape, x0):
                 if check["refine"]:
                     h = h_sep
                     rounds[-1]["lenslet_kernels"] = R.kernel_summary(k_sep)
+                elif check["views_disagree"] and R.AUTO_GAIN_ROUNDS:
+                    gains_only, n = True, 1 + R.AUTO_GAIN_ROUNDS
                 else:
                     n = 1
         rnd += 1
     # where kernels per lenslet were fitted (the volume is points, the PSF fits each view) l1 is reweighted
-    reweight = R.final_reweight(prm, mode == "auto" and n > 1)
+    reweight = R.final_reweight(prm, mode == "auto" and n > 1 and not gains_only)
     # the final solve starts from the last round's volume, solved at up to psf_refine_l1_start x the l1 weight: a
     # sparse start far from the answer, unlike a user's x0 (an answer, a series' previous frame), so it waits as a
     # cold solve does. Measured both ways on the quality suite, its seeds and the held-out family (docs/quality.md,
@@ -314,6 +319,7 @@ def _refined(solve, y, psf, weights, prm, padded_shape, x0):
     rec.info["psf_refine"] = {"mode": mode if staged else "given",
                               "refined": not all(r["kept"] for r in rounds), "check": check,
                               "rounds": n, "lenslets": int(labels.max()) if n > 1 or mode != "auto" else 1,
+                              "lenslet_gains_only": gains_only,
                               "radius_px": prm.psf_refine_radius, "overrelax": R.OVERRELAX,
                               "depth_nodes": int(R.depth_weights(h.shape[0], prm.psf_refine_depth_nodes).shape[0]),
                               "l1_start": prm.psf_refine_l1_start, "per_round": rounds, "reweight": reweight,

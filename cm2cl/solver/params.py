@@ -191,8 +191,9 @@ class ADMMParams:
         "misfit beyond one common kernel, with an F statistic above 0.6; 2.5% and 1.25 under a camera model's or "
         "a user's unequal pixel weights; info['psf_refine']['check']) and the "
         "volume is made of points (at most half its energy in pieces wider than 3 spots: kernels per lenslet "
-        "trade shifts with extended objects) the rest of 12 rounds of kernels per lenslet follow, else the "
-        "answer is the 'common' one (also for a PSF of one view: a diffuser, a single lens). 'auto' and 'common' "
+        "trade shifts with extended objects) the rest of 12 rounds of kernels per lenslet follow; on an extended "
+        "volume 3 rounds fit each lenslet's gain alone (its share of the light: vignetting); where the views "
+        "agree the answer is the 'common' one (also for a PSF of one view: a diffuser, a single lens). 'auto' and 'common' "
         "do not run with padding='support' or lateral tiles (the PSF is then used as given).",
         unit="rounds", flag=True)
     psf_refine_iter: int = _param(

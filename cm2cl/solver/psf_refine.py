@@ -88,6 +88,15 @@ VIEW_F_WEIGHTED = 1.25
 EXTENDED_LEVEL = 0.1
 EXTENDED_SPOTS = 3.0
 EXTENDED_SHARE = 0.5
+#: psf_refine='auto' where the views disagree but the volume is extended: after the common round, this many
+#: rounds fit each lenslet's gain alone (kernels of radius 0: a gain has no shift to trade with an extended
+#: object). Fibres whose lenslets' light differs from the PSF's (vignetting, each view's share) are otherwise
+#: reconstructed with the wrong views' weights. Measured on the quality suite's fibres (docs/psf_refine.md,
+#: stop 56; energy near the fibres, 'common' -> gains): vignetted outer lenslets 0.44-0.52 -> 0.78-0.84 on 4
+#: seeds, with a blurrier PSF off in depth too 0.39-0.45 -> 0.72-0.79, every mismatch (fibres_mm) 0.31-0.36 ->
+#: 0.38-0.71 on 6; an aberrated PSF alone -0.03 to +0.03. More rounds drifted (a lenslet's gain towards 0 on
+#: fibres_mm: 4 rounds 0.26-0.69, 5 rounds 0.19-0.67)
+AUTO_GAIN_ROUNDS = 3
 #: eps (a fraction of the volume's maximum) of the reweighted l1 in psf_refine='auto''s final solve after kernels
 #: per lenslet (ADMMParams.psf_refine_reweight): beads that rounds per lenslet left at 0.17-0.19 of the brightest
 #: came back above a fifth of it; eps 0.1 (weights down to 0.1 on the brightest) let more false maxima through
