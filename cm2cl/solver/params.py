@@ -177,7 +177,8 @@ class ADMMParams:
     # in depth at about the time of a plain solve, and the view check on that round's volume sends aberrated or
     # vignetted PSFs on to kernels per lenslet (passing mm_aberr and mm_trunc of the quality suite) while matched
     # ones, and the demo's beads between coarse planes, stay at 'common' (docs/psf_refine.md); per-lenslet
-    # rounds make an aberrated PSF on fibres worse (fibres_mm, which fails either way)
+    # kernels make an aberrated PSF on fibres worse (they trade shifts with them), so extended volumes get each
+    # lenslet's gain alone (docs/psf_refine.md, stop 56)
     psf_refine: int | str = _param(
         "auto", {"type": "int", "min": 0, "max": 20, "words": ("auto", "common")},
         "Rounds of PSF self-calibration (cm2cl.solver.psf_refine): after a solve of psf_refine_iter iterations, "
@@ -193,8 +194,8 @@ class ADMMParams:
         "volume is made of points (at most half its energy in pieces wider than 3 spots: kernels per lenslet "
         "trade shifts with extended objects) the rest of 12 rounds of kernels per lenslet follow; on an extended "
         "volume 3 rounds fit each lenslet's gain alone (its share of the light: vignetting); where the views "
-        "agree the answer is the 'common' one (also for a PSF of one view: a diffuser, a single lens). 'auto' and 'common' "
-        "do not run with padding='support' or lateral tiles (the PSF is then used as given).",
+        "agree the answer is the 'common' one (also for a PSF of one view: a diffuser, a single lens). 'auto' and "
+        "'common' do not run with padding='support' or lateral tiles (the PSF is then used as given).",
         unit="rounds", flag=True)
     psf_refine_iter: int = _param(
         100, {"type": "int", "min": 1}, "Iterations of each solve before a PSF refinement round.", unit=_ITERS,

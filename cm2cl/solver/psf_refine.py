@@ -93,8 +93,9 @@ EXTENDED_SHARE = 0.5
 #: object). Fibres whose lenslets' light differs from the PSF's (vignetting, each view's share) are otherwise
 #: reconstructed with the wrong views' weights. Measured on the quality suite's fibres (docs/psf_refine.md,
 #: stop 56; energy near the fibres, 'common' -> gains): vignetted outer lenslets 0.44-0.52 -> 0.78-0.84 on 4
-#: seeds, with a blurrier PSF off in depth too 0.39-0.45 -> 0.72-0.79, every mismatch (fibres_mm) 0.31-0.36 ->
-#: 0.38-0.71 on 6; an aberrated PSF alone -0.03 to +0.03. More rounds drifted (a lenslet's gain towards 0 on
+#: seeds, with a blurrier PSF off in depth too 0.39-0.45 -> 0.72-0.79, every mismatch (fibres_mm) 0.31-0.40 ->
+#: 0.38-0.71 on 6; an aberrated PSF alone -0.03 to +0.03, the wave-optics simulator's vessels (truncation and
+#: field aberrations, no gain error) 0.927 -> 0.909. More rounds drifted (a lenslet's gain towards 0 on
 #: fibres_mm: 4 rounds 0.26-0.69, 5 rounds 0.19-0.67)
 AUTO_GAIN_ROUNDS = 3
 #: eps (a fraction of the volume's maximum) of the reweighted l1 in psf_refine='auto''s final solve after kernels
