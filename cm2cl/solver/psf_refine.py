@@ -130,7 +130,8 @@ def plan_rounds(value) -> int:
 def describe(value) -> str:
     """What the psf_refine value ``value`` fits, in words (a series' and a log's message)."""
     return {"common": "one kernel common to every lenslet",
-            "auto": "one kernel common to every lenslet, then kernels per lenslet where their views disagree"
+            "auto": "one kernel common to every lenslet, then kernels per lenslet where their views disagree "
+                    "(each lenslet's gain alone on an extended sample)"
             }.get(value, f"{value} rounds")
 
 
