@@ -266,7 +266,10 @@ def refine_line(record) -> str:
     if record.get("check_skipped") and record.get("refined"):
         test = f"the lenslets' views not compared ({record['check_skipped']})"
     if record.get("refined"):
-        if record["rounds"] > 1:
+        if record.get("common_only"):
+            n = record["rounds"]
+            what = f"{n} round{'s' if n > 1 else ''}, one kernel common to every lenslet"
+        elif record["rounds"] > 1:
             then = "each lenslet's gain" if record.get("lenslet_gains_only") else "kernels per lenslet"
             what = f"{record['rounds']} rounds" + (f" (one kernel common to every lenslet, then {then})"
                                                    if record.get("mode") == "auto" else "")

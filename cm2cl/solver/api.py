@@ -253,11 +253,12 @@ def _refined(solve, y, psf, weights, prm, padded_shape, x0):
     h = np.asarray(psf, np.float64)
     P, x_start, rounds, check = padded_shape, x0, [], None
     gains_only = False   # 'auto' on an extended volume whose views disagree: each lenslet's gain alone
+    common_only = mode == "common"   # every round one kernel for all lenslets ('auto' where the views agree)
     rnd = 0
     while rnd < n:
         scale, nodes = R.round_schedule(rnd, n, prm.psf_refine_l1_start, prm.psf_refine_depth_nodes)
         lab = labels
-        if staged and rnd == 0:
+        if staged and (rnd == 0 or common_only):
             lab, nodes = common_labels, prm.psf_refine_depth_nodes
         radius = prm.psf_refine_radius
         if gains_only:
@@ -283,9 +284,10 @@ def _refined(solve, y, psf, weights, prm, padded_shape, x0):
         log.info("PSF refinement round %d of %d: %d iterations, misfit %.4f before it; %d kernels, gains %.2f-%.2f",
                  len(rounds), n, rec.iterations, misfit, len(gains), min(gains), max(gains))
         if mode == "auto" and rnd == 0:
-            if empty or check_why is not None:
-                check_why = check_why or "the round's volume explained too little of the data"
-                n = 1
+            if empty:
+                check_why, n = check_why or "the round's volume explained too little of the data", 1
+            elif check_why is not None:
+                common_only, n = True, R.COMMON_ROUNDS
             else:   # the check: kernels per lenslet on the same volume, imaged by the commonly refined stack
                 h_sep, k_sep, _, rec_check = R.refine_step(h, labels, rec.volume_padded, y - b,
                                                            prm.psf_refine_radius, w, check=True)
@@ -305,10 +307,10 @@ def _refined(solve, y, psf, weights, prm, padded_shape, x0):
                 elif check["views_disagree"] and R.AUTO_GAIN_ROUNDS:
                     gains_only, n = True, 1 + R.AUTO_GAIN_ROUNDS
                 else:
-                    n = 1
+                    common_only, n = True, R.COMMON_ROUNDS
         rnd += 1
     # where kernels per lenslet were fitted (the volume is points, the PSF fits each view) l1 is reweighted
-    reweight = R.final_reweight(prm, mode == "auto" and n > 1 and not gains_only)
+    reweight = R.final_reweight(prm, mode == "auto" and n > 1 and not (gains_only or common_only))
     # the final solve starts from the last round's volume, solved at up to psf_refine_l1_start x the l1 weight: a
     # sparse start far from the answer, unlike a user's x0 (an answer, a series' previous frame), so it waits as a
     # cold solve does. Measured both ways on the quality suite, its seeds and the held-out family (docs/quality.md,
@@ -318,8 +320,8 @@ def _refined(solve, y, psf, weights, prm, padded_shape, x0):
     rec.psf = h
     rec.info["psf_refine"] = {"mode": mode if staged else "given",
                               "refined": not all(r["kept"] for r in rounds), "check": check,
-                              "rounds": n, "lenslets": int(labels.max()) if n > 1 or mode != "auto" else 1,
-                              "lenslet_gains_only": gains_only,
+                              "rounds": n, "lenslets": 1 if common_only else int(labels.max()),
+                              "common_only": common_only, "lenslet_gains_only": gains_only,
                               "radius_px": prm.psf_refine_radius, "overrelax": R.OVERRELAX,
                               "depth_nodes": int(R.depth_weights(h.shape[0], prm.psf_refine_depth_nodes).shape[0]),
                               "l1_start": prm.psf_refine_l1_start, "per_round": rounds, "reweight": reweight,

@@ -56,6 +56,12 @@ ROUND_PENALTIES = {"mu_v": 1.0, "adapt_max_step": 3.0, "adapt_from": 1}
 VIEW_SHARE = 0.2
 #: psf_refine='auto': the rounds (the common one included) when the views disagree (docs/psf_refine.md's schedule)
 AUTO_ROUNDS = 12
+#: rounds of one kernel common to every lenslet ('common', and 'auto' where the views agree or cannot be
+#: compared): the first from the sparse solve (12x l1), the second from a solve at the final l1 weight, whose
+#: volume holds the faint emitters too. One round left a blurrier PSF half-corrected: the quality suite's
+#: mm_blur and mm_issue gained one or two ghosts from 50 iterations to convergence (F1 0.988 -> 0.976, 0.968 ->
+#: 0.952); with the second 0.988 -> 0.988 and 0.984 -> 1.000 (docs/psf_refine.md, stop 56)
+COMMON_ROUNDS = 2
 #: psf_refine='auto': refine per lenslet when separate kernels per lenslet explain more than this fraction of
 #: the misfit beyond one common kernel (:func:`view_disagreement`), measured on the volume of the first round
 #: (a sparse solve, its PSF then refined by a kernel common to every lenslet). On docs/quality.md's rendered
@@ -122,9 +128,10 @@ def explicit_rounds(value) -> bool:
 
 
 def plan_rounds(value) -> int:
-    """The refinement rounds the psf_refine value ``value`` runs at most: 'auto' the whole schedule (one when
-    its check finds the views in agreement), 'common' one, a number that many, 0 none."""
-    return {"auto": AUTO_ROUNDS, "common": 1}.get(value, value or 0)
+    """The refinement rounds the psf_refine value ``value`` runs at most: 'auto' the whole schedule
+    (COMMON_ROUNDS when its check finds the views in agreement), 'common' COMMON_ROUNDS, a number that many,
+    0 none."""
+    return {"auto": AUTO_ROUNDS, "common": COMMON_ROUNDS}.get(value, value or 0)
 
 
 def describe(value) -> str:
@@ -469,4 +476,4 @@ __all__ = ["lenslet_labels", "depth_weights", "round_schedule", "lenslet_images"
            "views_through_depth", "AUTO_ROUNDS", "VIEW_DISAGREEMENT", "VIEW_F", "VIEW_DISAGREEMENT_WEIGHTED",
            "VIEW_F_WEIGHTED", "OPTIONAL_MODES", "spot_width_px", "extended_share", "EXTENDED_SHARE", "EXTENDED_SPOTS",
            "explicit_rounds", "plan_rounds", "EMPTY_MISFIT", "check_skipped", "describe", "final_reweight",
-           "with_reweight", "REWEIGHT_EPS"]
+           "with_reweight", "REWEIGHT_EPS", "COMMON_ROUNDS", "AUTO_GAIN_ROUNDS"]
