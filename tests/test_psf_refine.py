@@ -418,7 +418,7 @@ def test_auto_refines_the_lenslets_of_a_blurred_and_aberrated_psf_unless_pixels_
     info = cam.info["psf_refine"]
     weighted = (R.VIEW_DISAGREEMENT_WEIGHTED, R.VIEW_F_WEIGHTED)
     assert (info["check"]["threshold"], info["check"]["f_threshold"]) == weighted
-    assert not info["check"]["refine"] and info["rounds"] == 1, info["check"]
+    assert not info["check"]["refine"] and info["rounds"] == R.COMMON_ROUNDS, info["check"]
 
 
 def test_auto_stays_common_on_a_matching_psf_and_refines_the_lenslets_of_a_mismatched_one(rt):
@@ -431,10 +431,11 @@ def test_auto_stays_common_on_a_matching_psf_and_refines_the_lenslets_of_a_misma
     matched = Q.render_scene(spec["beads"])
     rec = cm2cl.reconstruct(matched.y, matched.psf, psf_refine="auto", **kw)
     info = rec.info["psf_refine"]
-    assert info["mode"] == "auto" and info["refined"] and info["rounds"] == 1 and rec.psf is not None
+    assert info["mode"] == "auto" and info["refined"] and info["rounds"] == R.COMMON_ROUNDS and rec.psf is not None
+    assert info["common_only"] and info["lenslets"] == 1
     assert info["check"]["disagreement"] < R.VIEW_DISAGREEMENT and info["check"]["f_statistic"] < R.VIEW_F
-    # one kernel per depth node, common to every lenslet
-    assert len(info["per_round"][0]["kernels"]) == info["depth_nodes"] == 3
+    # one kernel per depth node, common to every lenslet, in every round
+    assert all(len(r["kernels"]) == info["depth_nodes"] == 3 for r in info["per_round"])
     assert "lenslet_kernels" not in info["per_round"][0]
     assert info["reweight"] is None and rec.params["l1_reweight"] == 0    # plain l1 where no kernels per lenslet
     common = cm2cl.reconstruct(matched.y, matched.psf, **kw, psf_refine="common")
@@ -532,7 +533,8 @@ def test_auto_keeps_one_common_kernel_for_fibres_whose_views_agree(rt):
     kw = dict(max_iter=200)
     rec = cm2cl.reconstruct(sc.y, sc.psf, psf_refine="auto", **kw)
     info = rec.info["psf_refine"]
-    assert not info["check"]["views_disagree"] and info["rounds"] == 1 and not info["lenslet_gains_only"]
+    assert not info["check"]["views_disagree"] and info["rounds"] == R.COMMON_ROUNDS and info["common_only"]
+    assert not info["lenslet_gains_only"]
     np.testing.assert_array_equal(rec.volume, cm2cl.reconstruct(sc.y, sc.psf, psf_refine="common", **kw).volume)
 
 
@@ -550,7 +552,8 @@ def test_auto_is_common_where_the_views_cannot_be_compared_and_steps_aside_where
     y = Q.object_image(psf, x)
     rec = cm2cl.reconstruct(y, psf, max_iter=30, psf_refine="auto")
     info = rec.info["psf_refine"]
-    assert info["check_skipped"] == "the PSF has one view" and info["rounds"] == 1 and info["check"] is None
+    assert info["check_skipped"] == "the PSF has one view" and info["check"] is None
+    assert info["rounds"] == R.COMMON_ROUNDS and info["common_only"]
     np.testing.assert_array_equal(rec.volume, cm2cl.reconstruct(y, psf, max_iter=30, psf_refine="common").volume)
     scattered = np.zeros((nz,) + shape)          # 4 spots per plane, each plane's elsewhere
     rng = np.random.default_rng(2)
@@ -681,21 +684,26 @@ def test_refine_line_says_what_the_refinement_did():
 
     check = {"refine": False, "disagreement": 0.004, "threshold": 0.025, "f_statistic": 0.3, "f_threshold": 1.25}
     assert refine_line(None) == ""
-    agreed = {"refined": True, "mode": "auto", "rounds": 1, "iterations_total": 300, "check": check}
-    assert refine_line(agreed) == ("PSF refined in 1 round, one kernel common to every lenslet (300 iterations in "
+    agreed = {"refined": True, "mode": "auto", "rounds": 2, "common_only": True, "iterations_total": 300,
+              "check": check}
+    assert refine_line(agreed) == ("PSF refined in 2 rounds, one kernel common to every lenslet (300 iterations in "
                                    "all); --psf-refine auto: the lenslets' views agree with the PSF: separate kernels "
                                    "explain 0.004 of the misfit (threshold 0.025), F 0.30 (threshold 1.25)")
-    line = refine_line({**agreed, "rounds": 12, "check": {**check, "refine": True, "disagreement": 0.2},
+    # a record of one common round (an earlier version's, read back from a store) says so
+    old = {"refined": True, "mode": "auto", "rounds": 1, "iterations_total": 300, "check": check}
+    assert refine_line(old).startswith("PSF refined in 1 round, one kernel common to every lenslet (300 iterations")
+    line = refine_line({**agreed, "rounds": 12, "common_only": False, "check": {**check, "refine": True,
+                                                                                "disagreement": 0.2},
                         "reweight": {"rounds": 1, "eps": 0.3}})
     assert line.startswith("PSF refined in 12 rounds (one kernel common to every lenslet, then kernels per lenslet), "
                            "then l1 reweighted 1x (eps 0.3 of the maximum)")
     assert "views disagree" in line and "0.200 of the misfit" in line
     gated = {**check, "views_disagree": True, "disagreement": 0.05, "extended_share": 0.81, "extended_threshold": 0.5}
-    line = refine_line({**agreed, "check": gated})
+    line = refine_line({**old, "check": gated})
     assert line.startswith("PSF refined in 1 round, one kernel common to every lenslet")
     assert "views disagree with the PSF (separate kernels explain 0.050 of the misfit), but the volume is extended " \
            "(0.81 of its energy in pieces wider than 3 spots, threshold 0.5)" in line
-    line = refine_line({**agreed, "rounds": 4, "check": gated, "lenslet_gains_only": True})
+    line = refine_line({**agreed, "rounds": 4, "common_only": False, "check": gated, "lenslet_gains_only": True})
     assert line.startswith("PSF refined in 4 rounds (one kernel common to every lenslet, then each lenslet's gain)")
     assert line.endswith("kernels per lenslet would trade shifts with it; each lenslet's gain fitted alone")
     line = refine_line({**agreed, "check": None, "check_skipped": "the PSF has one view"})
@@ -708,15 +716,15 @@ def test_refine_line_says_what_the_refinement_did():
 # -------------------------------------------------------------------------------------------------- common
 def test_common_kernel_removes_the_ghosts_of_a_blurrier_psf_off_in_depth(rt):
     """psf_refine='common' on the quality suite's mm_issue scene (the issue's mismatch: every spot blurrier by
-    1 px and the stack 0.4 plane off in depth, haze, 800 photons): one round with one kernel for every lenslet
+    1 px and the stack 0.4 plane off in depth, haze, 800 photons): two rounds with one kernel for every lenslet
     (3 depth nodes) brings the PSF closer to the one that made the data, and the spurious maxima the plain
     solve leaves go below the issue's 1 per 10 beads with every bead found."""
     sc = Q.render_scene({s.name: s for s in Q.scene_specs()}["mm_issue"])
     plain = Q.score_beads(cm2cl.reconstruct(sc.y, sc.psf, psf_refine=0).volume, sc.beads)
     rec = cm2cl.reconstruct(sc.y, sc.psf, psf_refine="common")
     info = rec.info["psf_refine"]
-    assert info["mode"] == "common" and info["refined"] and info["rounds"] == 1 and info["lenslets"] == 1
-    assert info["depth_nodes"] == 3 and len(info["per_round"][0]["kernels"]) == 3
+    assert info["mode"] == "common" and info["refined"] and info["rounds"] == R.COMMON_ROUNDS and info["lenslets"] == 1
+    assert info["depth_nodes"] == 3 and all(len(r["kernels"]) == 3 for r in info["per_round"])
 
     def err(h):
         h = h / h.sum(axis=(1, 2), keepdims=True)
@@ -727,6 +735,21 @@ def test_common_kernel_removes_the_ghosts_of_a_blurrier_psf_off_in_depth(rt):
     s = Q.score_beads(rec.volume, sc.beads)
     assert plain["false_per_10"] > 1.0, plain
     assert s["recall"] >= 0.95 and s["false_per_10"] <= 1.0 and s["axial_err"] <= 0.5, (plain, s)
+
+
+def test_a_second_common_round_keeps_the_converged_answer_no_worse_than_50_iterations(rt):
+    """Issue 24's check on the quality suite's mm_issue frame (a blurrier PSF off in depth, haze, 800 photons) at
+    the defaults: the answer at convergence has no more false maxima than at 50 iterations and an F1 no lower.
+    With one common round (COMMON_ROUNDS 1) the converged answer had 3 ghosts against 2 (F1 0.952 < 0.968): the
+    first round's kernel, fitted to a sparse solve, leaves the blur half-corrected; the second, fitted to a
+    solve at the final l1 weight, corrects the rest."""
+    sc = Q.render_scene({s.name: s for s in Q.scene_specs()}["mm_issue"])
+    short = Q.score_beads(cm2cl.reconstruct(sc.y, sc.psf, max_iter=50, tol=0.0).volume, sc.beads)
+    rec = cm2cl.reconstruct(sc.y, sc.psf)
+    assert rec.info["psf_refine"]["rounds"] == R.COMMON_ROUNDS == 2 and rec.info["stop"] == "converged"
+    conv = Q.score_beads(rec.volume, sc.beads)
+    assert conv["f1"] >= short["f1"] and conv["false_maxima"] <= short["false_maxima"], (short, conv)
+    assert conv["recall"] >= 0.95 and conv["false_per_10"] <= 1.0, conv
 
 
 def test_common_steps_aside_where_it_cannot_run(rt):
@@ -751,7 +774,7 @@ def test_common_steps_aside_where_it_cannot_run(rt):
     vol, _ = reconstruct_tiled(y1, spot, (24, 24), max_iter=10, psf_refine="common")
     np.testing.assert_array_equal(vol, reconstruct_tiled(y1, spot, (24, 24), max_iter=10, psf_refine=0)[0])
     assert R.explicit_rounds(3) and not R.explicit_rounds("common") and not R.explicit_rounds(0)
-    assert [R.plan_rounds(v) for v in (0, 5, "common", "auto")] == [0, 5, 1, R.AUTO_ROUNDS]
+    assert [R.plan_rounds(v) for v in (0, 5, "common", "auto")] == [0, 5, R.COMMON_ROUNDS, R.AUTO_ROUNDS]
 
 
 def test_cli_and_series_take_common(rt, tmp_path, capsys):
@@ -772,7 +795,7 @@ def test_cli_and_series_take_common(rt, tmp_path, capsys):
             "--psf-refine", "common"]
     assert main(base + ["-o", str(tmp_path / "v.ome.tif"), "--save-psf"]) == 0
     said = capsys.readouterr().out
-    assert "PSF refined in 1 round, one kernel common to every lenslet" in said, said
+    assert "PSF refined in 2 rounds, one kernel common to every lenslet" in said, said
     h, meta = io.read_tiff(tmp_path / "v.psf.ome.tif")
     assert h.shape == psf.shape and np.abs(h / h.sum() - psf / psf.sum()).max() > 0.01 * (psf / psf.sum()).max()
     assert "self-calibrated" in meta["extra"]["what"]
