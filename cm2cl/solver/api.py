@@ -232,14 +232,14 @@ def _refined(solve, y, psf, weights, prm, padded_shape, x0):
     of a ``psf_refine_iter``-iteration solve and a kernel fit, each solve warm-started from the last, then the
     solve to the stopping rule with the refined PSF; the record in ``info['psf_refine']``.
 
-    'common': one round, one kernel for every lenslet (over ``psf_refine_depth_nodes``). 'auto': that round,
-    then the view check on the same volume (:func:`.psf_refine.view_disagreement`, kernels per lenslet fitted
+    'common': ``COMMON_ROUNDS`` rounds, one kernel for every lenslet (over ``psf_refine_depth_nodes``). 'auto':
+    the first, then the view check on the same volume (:func:`.psf_refine.view_disagreement`, kernels per lenslet fitted
     to images of the commonly refined stack): where the lenslets' views disagree and the volume is made of
     points (:func:`.psf_refine.extended_share`) the check's kernels are applied and the rest of
     ``AUTO_ROUNDS`` rounds of kernels per lenslet follow; where they disagree and the volume is extended (kernels
     per lenslet trade shifts with extended objects) ``AUTO_GAIN_ROUNDS`` rounds fit each lenslet's gain alone;
-    where they agree, or the PSF has no views to compare (:func:`.psf_refine.check_skipped`), the answer is the
-    'common' one. A number: that many rounds of kernels per lenslet."""
+    where they agree, or the PSF has no views to compare (:func:`.psf_refine.check_skipped`), the second common
+    round follows ('common''s answer). A number: that many rounds of kernels per lenslet."""
     from . import psf_refine as R
 
     mode = prm.psf_refine
@@ -283,6 +283,8 @@ def _refined(solve, y, psf, weights, prm, padded_shape, x0):
         gains = [q["gain"] for q in rounds[-1]["kernels"]]
         log.info("PSF refinement round %d of %d: %d iterations, misfit %.4f before it; %d kernels, gains %.2f-%.2f",
                  len(rounds), n, rec.iterations, misfit, len(gains), min(gains), max(gains))
+        if mode == "common" and rnd == 0 and empty:   # nothing to fit from the sparse start: the PSF as given
+            n = 1
         if mode == "auto" and rnd == 0:
             if empty:
                 check_why, n = check_why or "the round's volume explained too little of the data", 1

@@ -173,7 +173,7 @@ class ADMMParams:
     l1_reweight_eps: float = _param(
         0.1, {"type": "float", "min": 0, "max": 10, "exclusive": True},
         "eps of the reweighted l1 as a fraction of the volume's maximum.", flag=True)
-    # 'auto' by default: one round of a kernel common to every lenslet removed the ghosts of a blurrier PSF off
+    # 'auto' by default: rounds of a kernel common to every lenslet removed the ghosts of a blurrier PSF off
     # in depth at about the time of a plain solve, and the view check on that round's volume sends aberrated or
     # vignetted PSFs on to kernels per lenslet (passing mm_aberr and mm_trunc of the quality suite) while matched
     # ones, and the demo's beads between coarse planes, stay at 'common' (docs/psf_refine.md); per-lenslet
@@ -186,15 +186,15 @@ class ADMMParams:
         "blur, shift and gain), and the volume is solved again from the last one; after the rounds the final "
         "solve runs to the stopping rule with the refined PSF (rec.psf, info['psf_refine']). For a PSF that "
         "does not match the sample's optics (aberrations, vignetting, focus); 0: the PSF as given. "
-        "'common': one round with one kernel common to every lenslet (a blur or a shift of focus of the whole "
-        "PSF, interpolated over psf_refine_depth_nodes). 'auto': that round, then a check on its volume: where "
+        "'common': two rounds with one kernel common to every lenslet (a blur or a shift of focus of the whole "
+        "PSF, interpolated over psf_refine_depth_nodes). 'auto': the first, then a check on its volume: where "
         "the lenslets' views disagree with the PSF (separate kernels per lenslet explain more than 1.5% of the "
         "misfit beyond one common kernel, with an F statistic above 0.6; 2.5% and 1.25 under a camera model's or "
         "a user's unequal pixel weights; info['psf_refine']['check']) and the "
         "volume is made of points (at most half its energy in pieces wider than 3 spots: kernels per lenslet "
         "trade shifts with extended objects) the rest of 12 rounds of kernels per lenslet follow; on an extended "
         "volume 3 rounds fit each lenslet's gain alone (its share of the light: vignetting); where the views "
-        "agree the answer is the 'common' one (also for a PSF of one view: a diffuser, a single lens). 'auto' and "
+        "agree the second common round follows (also for a PSF of one view: a diffuser, a single lens). 'auto' and "
         "'common' do not run with padding='support' or lateral tiles (the PSF is then used as given).",
         unit="rounds", flag=True)
     psf_refine_iter: int = _param(

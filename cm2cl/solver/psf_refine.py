@@ -116,9 +116,9 @@ EMPTY_MISFIT = 0.99
 CHUNK_ENTRIES = 1 << 23
 #: psf_refine words that step aside where a refinement cannot run (padding='support', lateral tiles, too little
 #: host memory: the PSF is used as given and the reason recorded) where a number of rounds is refused:
-#: 'common' fits one kernel common to every lenslet (a blur or shift of focus of the whole PSF) in one round;
-#: 'auto' does that round, checks the lenslets' views on its volume and refines them one by one only where
-#: they disagree
+#: 'common' fits one kernel common to every lenslet (a blur or shift of focus of the whole PSF) in
+#: COMMON_ROUNDS rounds; 'auto' does the first, checks the lenslets' views on its volume and refines them one by
+#: one only where they disagree (the second common round where they agree)
 OPTIONAL_MODES = ("auto", "common")
 
 
