@@ -233,9 +233,9 @@ def _refined(solve, y, psf, weights, prm, padded_shape, x0):
     solve to the stopping rule with the refined PSF; the record in ``info['psf_refine']``.
 
     'common': ``COMMON_ROUNDS`` rounds, one kernel for every lenslet (over ``psf_refine_depth_nodes``). 'auto':
-    the first, then the view check on the same volume (:func:`.psf_refine.view_disagreement`, kernels per lenslet fitted
-    to images of the commonly refined stack): where the lenslets' views disagree and the volume is made of
-    points (:func:`.psf_refine.extended_share`) the check's kernels are applied and the rest of
+    the first, then the view check on the same volume (:func:`.psf_refine.view_disagreement`, kernels per
+    lenslet fitted to images of the commonly refined stack): where the lenslets' views disagree and the volume
+    is made of points (:func:`.psf_refine.extended_share`) the check's kernels are applied and the rest of
     ``AUTO_ROUNDS`` rounds of kernels per lenslet follow; where they disagree and the volume is extended (kernels
     per lenslet trade shifts with extended objects) ``AUTO_GAIN_ROUNDS`` rounds fit each lenslet's gain alone;
     where they agree, or the PSF has no views to compare (:func:`.psf_refine.check_skipped`), the second common
@@ -322,7 +322,8 @@ def _refined(solve, y, psf, weights, prm, padded_shape, x0):
     rec.psf = h
     rec.info["psf_refine"] = {"mode": mode if staged else "given",
                               "refined": not all(r["kept"] for r in rounds), "check": check,
-                              "rounds": n, "lenslets": 1 if common_only else int(labels.max()),
+                              "rounds": n,
+                              "lenslets": int(labels.max()) if not common_only and (n > 1 or mode != "auto") else 1,
                               "common_only": common_only, "lenslet_gains_only": gains_only,
                               "radius_px": prm.psf_refine_radius, "overrelax": R.OVERRELAX,
                               "depth_nodes": int(R.depth_weights(h.shape[0], prm.psf_refine_depth_nodes).shape[0]),
