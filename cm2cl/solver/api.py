@@ -283,12 +283,12 @@ def _refined(solve, y, psf, weights, prm, padded_shape, x0):
         gains = [q["gain"] for q in rounds[-1]["kernels"]]
         log.info("PSF refinement round %d of %d: %d iterations, misfit %.4f before it; %d kernels, gains %.2f-%.2f",
                  len(rounds), n, rec.iterations, misfit, len(gains), min(gains), max(gains))
-        if mode == "common" and rnd == 0 and empty:   # nothing to fit from the sparse start: the PSF as given
+        if staged and rnd == 0 and empty:   # nothing to fit from the sparse start: the PSF as given
             n = 1
-        if mode == "auto" and rnd == 0:
-            if empty:
-                check_why, n = check_why or "the round's volume explained too little of the data", 1
-            elif check_why is not None:
+            if mode == "auto":
+                check_why = check_why or "the round's volume explained too little of the data"
+        elif mode == "auto" and rnd == 0:
+            if check_why is not None:
                 common_only, n = True, R.COMMON_ROUNDS
             else:   # the check: kernels per lenslet on the same volume, imaged by the commonly refined stack
                 h_sep, k_sep, _, rec_check = R.refine_step(h, labels, rec.volume_padded, y - b,
