@@ -36,6 +36,9 @@ def test_reconstruct_writes_volume_and_log(rt, tmp_path, capsys):
     assert rows[0].startswith("iter,objective,data") and len(rows) == 41
     doc = json.loads((tmp_path / "vol.cm2cl.json").read_text())
     assert doc["params"]["max_iter"] == 40 and len(doc["log"]) == 40
+    mis = doc["info"]["misfit"]   # the data misfit reached, in the record and the TIFF's metadata
+    assert 0 < mis["relative"] < 1 and mis["ratio"] > 0 and mis["pixels"] == 32 * 40
+    assert meta["extra"]["info"]["misfit"] == mis
     assert not list(tmp_path.glob("*.partial"))
 
 

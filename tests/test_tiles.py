@@ -2,6 +2,8 @@
 whole solve inside the tiles, leave no seam, cover the sensor once; the planner refuses windows that
 would lose views."""
 
+import json
+
 import numpy as np
 import pytest
 from scipy.ndimage import gaussian_filter
@@ -126,6 +128,10 @@ def test_cli_tiles_and_their_plan(rt, tmp_path, capsys):
     vol = io.read_tiff(tmp_path / "t.ome.tif")[0]
     expect, _ = reconstruct_tiled(y.astype(np.float32), psf.astype(np.float32), (48, 60), max_iter=20, tol=0)
     np.testing.assert_allclose(vol, expect, rtol=1e-5, atol=1e-6 * expect.max())
+    info = json.loads((tmp_path / "t.cm2cl.json").read_text())["info"]
+    tiles = info["tile_misfits"]   # each tile's data misfit over its window; the record's is the worst tile's
+    assert len(tiles) == 4 and all(m["ratio"] > 0 for m in tiles)
+    assert info["misfit"] == max(tiles, key=lambda m: m["ratio"])
     capsys.readouterr()
     assert main(base + ["-o", str(tmp_path / "u.ome.tif"), "--halo", "2"]) == 2
     assert "halo: 2 x 2 px is smaller than the PSF's reach" in capsys.readouterr().err

@@ -105,11 +105,13 @@ def _reconstruct(sim, params, device, say):
     rec = reconstruct(sim.measurement, sim.psf, device=device, padding="support",
                       voxel_size_um=sim.voxel_size_um, depths_um=sim.depths_um, **params)
     t_rec = time.perf_counter() - t
+    from .frame import misfit_words
+
     conv = ("converged: relative residuals and change below "
             f"{rec.info['tol']:g}" if rec.info["converged"] else "NOT converged: stopped at the iteration cap")
     say(f"  reconstructed on {rec.info.get('device', '?')} in {t_rec:.1f} s: {rec.iterations} iterations, {conv}; "
         f"l1 {rec.info['l1']:.3g}, TV {rec.info['tv']:.3g} (volume-domain noise level {rec.info['noise_x']:.3g}; "
-        f"measurement noise {rec.info['noise_sigma']:.3g} of the maximum)")
+        f"measurement noise {rec.info['noise_sigma']:.3g} of the maximum); {misfit_words(rec.info['misfit'])}")
     return rec, t_rec
 
 
@@ -142,7 +144,7 @@ def _score(vol, sim, scene, rec, params, say):
         "voxel_size_um": list(sim.voxel_size_um), "depths_um": sim.depths_um.tolist(),
         "reconstruction": {"params": params, "iterations": rec.iterations, "stop": rec.info["stop"],
                            "converged": rec.info["converged"], "l1": rec.info["l1"], "tv": rec.info["tv"],
-                           "noise_sigma": rec.info["noise_sigma"],
+                           "noise_sigma": rec.info["noise_sigma"], "misfit": rec.info["misfit"],
                            "scaling": rec.scaling},
         "matching": {"threshold": analysis.emitters.DETECT_THRESHOLD,
                      "lateral_tolerance_um": m["lateral_tolerance_um"], "axial_tolerance_um": m["axial_tolerance_um"]},

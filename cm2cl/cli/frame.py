@@ -224,6 +224,7 @@ def _tiled(args, y, wp, dt, devs, weights, params: ADMMParams):
                          scaling={"psf_scale": 1.0, "y_scale": 1.0}, params=rec.params,
                          info={**rec.info, "tiles": info, "l1": info["l1"], "tv": info["tv"],
                                "noise_x": info["noise_x"], "noise_sigma": info["noise_sigma"],
+                               "misfit": worst_misfit(info["misfit"]), "tile_misfits": info["misfit"],
                                "converged": all(info["converged"]),
                                "stop": f"{sum(info['converged'])} of {info['tiles']} tiles converged",
                                **({"attenuation": info["attenuation"]} if "attenuation" in info else {})})
@@ -302,6 +303,23 @@ def attenuation_line(record) -> str:
             f"{found}; solved with it" + (f" (the deepest plane keeps {min(a):.3f} of its light)" if a else ""))
 
 
+def worst_misfit(misfits: list) -> dict:
+    """The misfit record of the tile whose residual lies farthest above its white noise (the first where none has
+    a ratio)."""
+    rated = [m for m in misfits if m.get("ratio") is not None]
+    return max(rated, key=lambda m: m["ratio"]) if rated else misfits[0]
+
+
+def misfit_words(misfit) -> str:
+    """The data misfit a solve reached, in words (:func:`cm2cl.solver.control.data_misfit`'s record)."""
+    if not misfit or misfit.get("relative") is None:
+        return "data misfit not measured"
+    txt = f"data misfit {misfit['relative']:.4f} of the measurement"
+    if misfit.get("ratio") is not None:
+        txt += f", {misfit['ratio']:.2f}x the residual's white noise"
+    return txt
+
+
 def _report(out, outset, rec, how, vol):
     last, info = rec.log[-1], rec.info
     scale = "voxel {:g} x {:g} x {:g} um (z, y, x; {})".format(*rec.voxel_size_um, how) if rec.voxel_size_um else how
@@ -309,6 +327,7 @@ def _report(out, outset, rec, how, vol):
                 f"NOT converged: stopped at --max-iter, relative residuals {last['primal_rel']:.1e} / "
                 f"{last['dual_rel']:.1e} against tol {info['tol']:g}")
     print(f"{out}: {vol.shape} {vol.dtype} volume, {scale}; {rec.iterations} iterations, {how_stop}; "
+          f"{misfit_words(info.get('misfit'))}; "
           f"l1 {info['l1']:.3g}, tv {info['tv']:.3g} (volume-domain noise level {info['noise_x']:.3g}; "
           f"measurement noise {info['noise_sigma']:.3g} of max y); "
           f"objective {last['objective']:.4e}, {last['seconds']:.1f} s on {info['device']}; "

@@ -152,7 +152,8 @@ def operator_norm(h: np.ndarray) -> float:
 def reconstruct_tiled(measurement, psf, tile, halo=None, *, progress=None, **kw):
     """Reconstruct ``measurement`` (My, Mx) with ``psf`` (nz, My, Mx) as lateral tiles (see the module's
     doc). ``kw`` are :func:`cm2cl.reconstruct`'s (weights l1 / tv / *_noise_ratio / l1_plane_power,
-    iterations, device, dtype, ...). Returns (volume (nz, My, Mx) in the caller's units, info)."""
+    iterations, device, dtype, ...). Returns (volume (nz, My, Mx) in the caller's units, info); info['misfit']
+    lists each tile's data misfit (:func:`cm2cl.solver.control.data_misfit`, over the tile's window)."""
     from .. import validate
     from ..solver.api import reconstruct
     from ..solver.control import ProblemScale
@@ -194,7 +195,7 @@ def reconstruct_tiled(measurement, psf, tile, halo=None, *, progress=None, **kw)
     nz, (My, Mx) = h.shape[0], y.shape
     out = np.zeros((nz, My, Mx))
     total = np.zeros((My, Mx))
-    iterations, converged = [], []
+    iterations, converged, misfits = [], [], []
     for k, ((((a, b), (c, d)), wgt), ((wr0, wr1), (wc0, wc1))) in enumerate(zip(tile_weights(plan), plan.windows)):
         Wy, Wx = wr1 - wr0, wc1 - wc0
         py0, px0 = My // 2 - Wy // 2, Mx // 2 - Wx // 2     # the PSF around its axis on the window's grid
@@ -208,13 +209,15 @@ def reconstruct_tiled(measurement, psf, tile, halo=None, *, progress=None, **kw)
         total[a:b, c:d] += wgt
         iterations.append(rec.iterations)
         converged.append(bool(rec.info["converged"]))
+        misfits.append({k: v / sy if k in ("rms", "white_rms") and v is not None else v    # the caller's units
+                        for k, v in rec.info["misfit"].items()})
         if progress is not None:
             progress(k + 1, len(plan.tiles), rec)
     if not np.allclose(total, 1.0):
         raise RuntimeError("tile weights do not sum to 1 (a bug)")
     info = {"tiles": len(plan.tiles), "tile": list(plan.tile), "halo": list(plan.halo), "reach": list(plan.reach),
             "feather": list(plan.feather), "l1": l1, "tv": tv, "iterations": iterations, "converged": converged,
-            "noise_x": scale.noise_x, "noise_sigma": scale.noise_sigma}
+            "noise_x": scale.noise_x, "noise_sigma": scale.noise_sigma, "misfit": misfits}
     if att is not None:
         info["attenuation"] = att
     return np.maximum(out, 0).astype(np.dtype(kw.get("dtype", np.float32))), info

@@ -22,7 +22,7 @@ from ..device.runtime import get_runtime
 from ..device.volume import fill, scale, upload
 from ..errors import DeviceError, InputError
 from . import xstep
-from .control import Control, ProblemScale
+from .control import Control, ProblemScale, data_misfit
 from .forward import centered_psf, choose_padded_shape, crop_offsets, min_padded_shape, psf_support
 from .launch import Kernels, RowLayout, Slots
 from .memory import fft_scratch_per_plane, memory_estimate, plan_layout
@@ -384,6 +384,13 @@ class ADMMSolver:
         if bg is not None:
             info_bg = {"model": "cubic B-splines >= 0", "knot_spacing_px": bg.spacing, "coefficients": list(bg.shape),
                        "mean": float(bg.plane().mean() / y_scale)}
+        # the data misfit the solve reached: the measurement less the model at the last iterate (H x from the last
+        # x step, on part 0's plane) and the background, against the residual's own white noise
+        model = self.get_plane("hx")[0][self.crop].astype(np.float64)
+        if bg is not None:
+            model += bg.plane()
+        misfit = data_misfit(self.y_n, model, self.pixel_weights)
+        misfit.update({k: misfit[k] / y_scale for k in ("rms", "white_rms") if misfit[k] is not None})
         layout = [{"device": part.rt.caps.name, "planes": [part.z0, part.z1], "streamed": part.streamed,
                    "lean": part.lean, "slab_planes": part.max_planes, "overlap": part.overlap} for part in self.parts]
         return Reconstruction(
@@ -397,7 +404,7 @@ class ADMMSolver:
                   "l1_plane_weights": [float(c) for c in self.l1_plane_weights],
                   "device_bytes": int(self.allocated_bytes), "host_bytes": int(self.host_bytes),
                   "moved_bytes": int(self.moved_bytes),
-                  "background": {"model": "none"} if bg is None else info_bg})
+                  "background": {"model": "none"} if bg is None else info_bg, "misfit": misfit})
 
 
 __all__ = ["ADMMSolver", "pixel_weights"]

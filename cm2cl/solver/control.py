@@ -48,6 +48,38 @@ def noise_sigma(y) -> float:
     return float(1.4826 * np.median(np.abs(d - np.median(d))) / np.sqrt(1.25))
 
 
+def data_misfit(y, model, weights=None) -> dict:
+    """The misfit of a ``model`` image (C H x + b) to the measurement ``y``, over the pixels whose ``weights``
+    (the data term's) are > 0, the residual r = y - model scaled by sqrt(weights) (a camera model's variance
+    weights standardise it): ``{'relative', 'rms', 'white_rms', 'ratio', 'pixels'}``.
+
+    relative = ||r|| / ||y|| (y weighted alike); rms is r's root mean square; white_rms the RMS its white part
+    has, estimated from r less the mean of its 4 neighbours (white noise gives that difference 1.25 sigma^2 of
+    variance, whatever its level; structure smoother than a pixel cancels in it), where the 4 neighbours count
+    too; ratio = rms / white_rms: 1 where the model explains the frame down to its noise, 2 where the residual
+    holds three times more variance than the noise (structure the model, its PSF or its background, does not
+    explain). A value is None where it is undefined (no pixels, a zero frame, noise-free data)."""
+    w = np.ones(np.shape(y)) if weights is None else np.asarray(weights, np.float64)
+    ok = w > 0
+    sw = np.sqrt(np.where(ok, w, 0.0))
+    y = np.asarray(y, np.float64) * sw
+    r = y - np.asarray(model, np.float64) * sw
+    out = {"relative": None, "rms": None, "white_rms": None, "ratio": None, "pixels": int(ok.sum())}
+    if not ok.any():
+        return out
+    ny = float(np.linalg.norm(y[ok]))
+    out["relative"] = float(np.linalg.norm(r[ok])) / ny if ny > 0 else None
+    out["rms"] = float(np.sqrt(np.mean(r[ok] ** 2)))
+    if r.ndim == 2 and min(r.shape) >= 3:
+        inner = ok[1:-1, 1:-1] & ok[:-2, 1:-1] & ok[2:, 1:-1] & ok[1:-1, :-2] & ok[1:-1, 2:]
+        d = r[1:-1, 1:-1] - 0.25 * (r[:-2, 1:-1] + r[2:, 1:-1] + r[1:-1, :-2] + r[1:-1, 2:])
+        if inner.any():
+            out["white_rms"] = float(np.sqrt(np.mean(d[inner] ** 2) / 1.25))
+    if out["white_rms"]:
+        out["ratio"] = out["rms"] / out["white_rms"]
+    return out
+
+
 @dataclass(frozen=True)
 class ProblemScale:
     """What the defaults are derived from, all on the normalised problem (max y = 1, ||H|| = 1)."""
