@@ -37,6 +37,12 @@ ADAPT_MAX_STEP = 1.5
 ADAPT_FROM = 10
 
 
+def _neighbour_difference(a: np.ndarray) -> np.ndarray:
+    """a less the mean of its 4 neighbours, on the interior pixels: 1.25 sigma^2 of variance for white noise of
+    sigma, while structure smoother than a pixel cancels in it."""
+    return a[1:-1, 1:-1] - 0.25 * (a[:-2, 1:-1] + a[2:, 1:-1] + a[1:-1, :-2] + a[1:-1, 2:])
+
+
 def noise_sigma(y) -> float:
     """Robust estimate of the white-noise standard deviation of an image: the median absolute deviation
     of y minus the mean of its 4 neighbours (that residual has variance 1.25 sigma^2 for white noise,
@@ -44,7 +50,7 @@ def noise_sigma(y) -> float:
     y = np.asarray(y, np.float64)
     if y.ndim != 2 or min(y.shape) < 3:
         return 0.0
-    d = y[1:-1, 1:-1] - 0.25 * (y[:-2, 1:-1] + y[2:, 1:-1] + y[1:-1, :-2] + y[1:-1, 2:])
+    d = _neighbour_difference(y)
     return float(1.4826 * np.median(np.abs(d - np.median(d))) / np.sqrt(1.25))
 
 
@@ -72,7 +78,7 @@ def data_misfit(y, model, weights=None) -> dict:
     out["rms"] = float(np.sqrt(np.mean(r[ok] ** 2)))
     if r.ndim == 2 and min(r.shape) >= 3:
         inner = ok[1:-1, 1:-1] & ok[:-2, 1:-1] & ok[2:, 1:-1] & ok[1:-1, :-2] & ok[1:-1, 2:]
-        d = r[1:-1, 1:-1] - 0.25 * (r[:-2, 1:-1] + r[2:, 1:-1] + r[1:-1, :-2] + r[1:-1, 2:])
+        d = _neighbour_difference(r)
         if inner.any():
             out["white_rms"] = float(np.sqrt(np.mean(d[inner] ** 2) / 1.25))
     if out["white_rms"]:
