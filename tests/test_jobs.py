@@ -413,6 +413,9 @@ def test_executors_are_chosen_by_the_job_and_checked_before_any_output(rt, tmp_p
             assert s.computed == 2 and s.iterations == 10
             vols.append(np.stack([store.read(i) for i in range(2)]))
             assert store.info(1)["warm"] is True
+            for i in range(2):   # each frame's marker keeps the data misfit its solve reached
+                mis = store.info(i)["misfit"]
+                assert 0 < mis["relative"] < 1 and mis["ratio"] > 0 and mis["pixels"] == 32 * 40
     np.testing.assert_array_equal(vols[0], vols[1])
 
 

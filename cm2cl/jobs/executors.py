@@ -60,7 +60,8 @@ def solve_frame(key, psf, params_dict, dtype, backend, y, device=None, solver_kw
         rec = solver.solve(y, x0=x0, callback=check if cancel is not None else None)
     info = {"iterations": rec.iterations, "converged": bool(rec.info["converged"]), "stop": rec.info["stop"],
             "seconds": time.perf_counter() - t, "device": rec.info["device"],
-            "objective": rec.log[-1]["objective"], "moved_bytes": rec.info["moved_bytes"]}
+            "objective": rec.log[-1]["objective"], "moved_bytes": rec.info["moved_bytes"],
+            "misfit": rec.info["misfit"]}
     return np.asarray(rec.volume), info
 
 
