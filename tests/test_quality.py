@@ -386,3 +386,19 @@ def test_quick_scene_through_the_api_has_every_column(tmp_path):
     # the hand-written part survives a rewrite
     (tmp_path / "q.md").write_text(text + "my notes\n")
     assert "my notes" in qs.write_doc(tmp_path / "q.md", rows, qs.normalise_configs({}), "cmd", 1.0, True, 2, [])
+
+
+def test_random_scenes_draw_every_range_reproducibly():
+    """tools/random_scenes.py's frames: the same seed draws the same frames, another seed others; over 200 draws
+    every background kind, blur, depth offset and bead count occurs, and levels and photons stay in their ranges
+    (photons log-uniform: about half below their geometric mean sqrt(200 x 5000) = 1000)."""
+    import random_scenes as rs
+
+    a, b = rs.draw(57, 200), rs.draw(57, 200)
+    assert a == b and rs.draw(58, 5) != a[:5]
+    assert {s.background for s in a} == set(rs.BACKGROUNDS)
+    assert {s.mismatch.blur for s in a} == set(rs.BLURS) and {s.mismatch.dz for s in a} == set(rs.DEPTHS)
+    assert {s.n_beads for s in a} == set(rs.BEADS)
+    assert all(0.0 <= s.bg_level <= 0.2 and 200.0 <= s.photons <= 5000.0 for s in a)
+    assert 0.35 < np.mean([s.photons < 1000.0 for s in a]) < 0.65
+    assert len({s.seed for s in a}) > 150          # the scenes' own seeds differ: 200 different frames
