@@ -57,6 +57,19 @@ def write_section(name: str, text: str, path: Path = DOCS / "benchmarks.md") -> 
     return path
 
 
+def made_by(tool: str, argv, seconds: float, doc: str) -> str:
+    """A generated page's first paragraph: the command (``python tools/TOOL`` and its non-default ``argv``), the
+    minutes it took, the OpenCL device and machine, and the third paragraph of the tool's ``doc`` (what it does)."""
+    import platform
+
+    from cm2cl.device.runtime import get_runtime
+
+    rt = get_runtime(None)
+    return (f"Made by `python tools/{tool}{' ' + ' '.join(argv) if argv else ''}` in {seconds / 60:.1f} min on "
+            f"{rt.caps.platform} ({rt.caps.name}), {platform.machine()}, one run. "
+            + doc.split("\n\n")[2].replace("\n", " "))
+
+
 def with_hand_written(text: str, path: Path) -> str:
     """``text`` (a tool's generated markdown) followed by the hand-written part of the page at ``path``, kept
     across re-runs: everything from its first "## " heading that says "(hand-written"."""

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import platform
 import sys
 import time
 from pathlib import Path
@@ -31,7 +30,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import cm2cl  # noqa: E402
-from benchlib import with_hand_written  # noqa: E402
+from benchlib import made_by, with_hand_written  # noqa: E402
 from cm2cl.analysis import quality as Q  # noqa: E402
 
 NZ, SHAPE, FOCUS = 20, (160, 192), 6.0
@@ -118,13 +117,8 @@ def run(seeds, log=print) -> list[dict]:
 
 
 def write_md(rows, path: Path, argv, seconds: float) -> None:
-    from cm2cl.device.runtime import get_runtime
-
-    rt = get_runtime(None)
     lines = ["# Bead frames through a held-out PSF family", "",
-             f"Made by `python tools/heldout_psf.py{' ' + ' '.join(argv) if argv else ''}` in {seconds / 60:.1f} min "
-             f"on {rt.caps.platform} ({rt.caps.name}), {platform.machine()}, one run. "
-             + __doc__.split("\n\n")[2].replace("\n", " "),
+             made_by("heldout_psf.py", argv, seconds, __doc__),
              "", "| seed | frame | recall | false / 10 | axial err | iterations | PSF refinement | targets | "
              "missed beads: plane (peak / brightest) |", "|---|---|---|---|---|---|---|---|---|"]
     for r in rows:

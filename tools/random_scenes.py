@@ -17,7 +17,6 @@ lenslet should keep the common kernel (2 rounds); 12 rounds mean the view check 
 from __future__ import annotations
 
 import argparse
-import platform
 import sys
 import time
 from pathlib import Path
@@ -28,7 +27,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import cm2cl  # noqa: E402
-from benchlib import with_hand_written  # noqa: E402
+from benchlib import made_by, with_hand_written  # noqa: E402
 from cm2cl.analysis import quality as Q  # noqa: E402
 
 BACKGROUNDS = ("haze", "ramp", "blob", "random")
@@ -79,13 +78,8 @@ def _f(v, fmt="{:.3f}") -> str:
 
 
 def write_md(rows, path: Path, argv, seconds: float) -> None:
-    from cm2cl.device.runtime import get_runtime
-
-    rt = get_runtime(None)
     lines = ["# Bead frames drawn at random from the quality suite's ranges", "",
-             f"Made by `python tools/random_scenes.py{' ' + ' '.join(argv) if argv else ''}` in {seconds / 60:.1f} "
-             f"min on {rt.caps.platform} ({rt.caps.name}), {platform.machine()}, one run. "
-             + __doc__.split("\n\n")[2].replace("\n", " "),
+             made_by("random_scenes.py", argv, seconds, __doc__),
              "", "| frame | scene seed | recall | false / 10 | axial err | PSF refinement rounds | d | F | misfit / "
              "white noise | iterations | s | targets |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
