@@ -209,8 +209,8 @@ def reconstruct_tiled(measurement, psf, tile, halo=None, *, progress=None, **kw)
         total[a:b, c:d] += wgt
         iterations.append(rec.iterations)
         converged.append(bool(rec.info["converged"]))
-        misfits.append({k: v / sy if k in ("rms", "white_rms") and v is not None else v    # the caller's units
-                        for k, v in rec.info["misfit"].items()})
+        misfits.append({key: val / sy if key in ("rms", "white_rms") and val is not None else val   # caller's units
+                        for key, val in rec.info["misfit"].items()})
         if progress is not None:
             progress(k + 1, len(plan.tiles), rec)
     if not np.allclose(total, 1.0):
