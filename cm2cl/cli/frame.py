@@ -264,6 +264,12 @@ def refine_line(record) -> str:
                 f"pieces wider than {EXTENDED_SPOTS:g} spots, threshold {check['extended_threshold']:g}): kernels "
                 "per lenslet would trade shifts with it" + ("; each lenslet's gain fitted alone"
                                                             if record.get("lenslet_gains_only") else ""))
+    cmp = record.get("compared")
+    if cmp:
+        kept = cmp["kept"] == "lenslets"
+        test += (f"; both answers solved: kernels per lenslet reach a misfit of {cmp['lenslets']['rms']:.4g} (rms), "
+                 f"the common kernel {cmp['common']['rms']:.4g}, so "
+                 + ("kernels per lenslet are kept" if kept else "the common kernel's answer is kept"))
     if record.get("check_skipped") and record.get("refined"):
         test = f"the lenslets' views not compared ({record['check_skipped']})"
     if record.get("refined"):

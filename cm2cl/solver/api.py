@@ -168,14 +168,15 @@ def reconstruct(measurement, psf, *, dtype=np.float32, backend: str = "auto", de
         return solver, rec
 
     if explicit_rounds(prm.psf_refine) or (optional and skipped is None):
-        solver, rec = _refined(solve, y, psf, weights, prm, padded_shape, x0)
+        P, rec = _refined(solve, y, psf, weights, prm, padded_shape, x0)
     else:
         solver, rec = solve(psf, replace(prm, psf_refine=0), padded_shape, x0)
+        P = solver.P
         if optional:
             log.info("psf_refine %s: the PSF is used as given (%s)", prm.psf_refine, skipped)
             rec.info["psf_refine"] = {"mode": prm.psf_refine, "refined": False, "rounds": 0, "skipped": skipped}
     rec.voxel_size_um, rec.depths_um = vs, d
-    rec.info["padding"] = pad_info or {"padded_shape": list(solver.P), "support_px": None}
+    rec.info["padding"] = pad_info or {"padded_shape": list(P), "support_px": None}
     rec.info["camera"] = cam
     if attenuation is not None:
         rec.info["attenuation"] = attenuation
@@ -228,18 +229,20 @@ def refine_skipped(psf, padded_shape=None, support: bool = False, mode: str = "a
 
 
 def _refined(solve, y, psf, weights, prm, padded_shape, x0):
-    """(solver, reconstruction) with the PSF self-calibrated (:mod:`.psf_refine`): ``prm.psf_refine`` rounds
-    of a ``psf_refine_iter``-iteration solve and a kernel fit, each solve warm-started from the last, then the
-    solve to the stopping rule with the refined PSF; the record in ``info['psf_refine']``.
+    """(the padded grid, reconstruction) with the PSF self-calibrated (:mod:`.psf_refine`): ``prm.psf_refine``
+    rounds of a ``psf_refine_iter``-iteration solve and a kernel fit, each solve warm-started from the last, then
+    the solve to the stopping rule with the refined PSF; the record in ``info['psf_refine']``.
 
     'common': ``COMMON_ROUNDS`` rounds, one kernel for every lenslet (over ``psf_refine_depth_nodes``). 'auto':
     the first, then the view check on the same volume (:func:`.psf_refine.view_disagreement`, kernels per
-    lenslet fitted to images of the commonly refined stack): where the lenslets' views disagree and the volume
-    is made of points (:func:`.psf_refine.extended_share`) the check's kernels are applied and the rest of
-    ``AUTO_ROUNDS`` rounds of kernels per lenslet follow; where they disagree and the volume is extended (kernels
-    per lenslet trade shifts with extended objects) ``AUTO_GAIN_ROUNDS`` rounds fit each lenslet's gain alone;
-    where they agree, or the PSF has no views to compare (:func:`.psf_refine.check_skipped`), the second common
-    round follows ('common''s answer). A number: that many rounds of kernels per lenslet."""
+    lenslet fitted to images of the commonly refined stack). Where the lenslets' views disagree and the volume
+    is made of points (:func:`.psf_refine.extended_share`) both answers are solved: the rest of ``AUTO_ROUNDS``
+    rounds of kernels per lenslet from the check's kernels, and the second common round; the one whose final
+    solve fits the data better keeps (:func:`.psf_refine.lenslets_fit_better`). Where they disagree and the
+    volume is extended (kernels per lenslet trade shifts with extended objects) ``AUTO_GAIN_ROUNDS`` rounds fit
+    each lenslet's gain alone; where they agree, or the PSF has no views to compare
+    (:func:`.psf_refine.check_skipped`), the second common round follows ('common''s answer). A number: that
+    many rounds of kernels per lenslet."""
     from . import psf_refine as R
 
     mode = prm.psf_refine
@@ -247,24 +250,23 @@ def _refined(solve, y, psf, weights, prm, padded_shape, x0):
     common_labels = np.ones(psf.shape[1:], np.int32)
     labels = common_labels if mode == "common" else R.lenslet_labels(psf)
     w = pixel_weights(weights, y.shape)
-    n = R.plan_rounds(mode)
     check_why = R.check_skipped(psf, labels) if mode == "auto" else None
-    inner = R.round_params(replace(prm, psf_refine=n, max_iter=min(prm.psf_refine_iter, prm.max_iter)))
-    h = np.asarray(psf, np.float64)
-    P, x_start, rounds, check = padded_shape, x0, [], None
-    gains_only = False   # 'auto' on an extended volume whose views disagree: each lenslet's gain alone
-    common_only = mode == "common"   # every round one kernel for all lenslets ('auto' where the views agree)
-    rnd = 0
-    while rnd < n:
+    inner = R.round_params(replace(prm, psf_refine=R.plan_rounds(mode),
+                                   max_iter=min(prm.psf_refine_iter, prm.max_iter)))
+
+    def one_round(h, rnd, n, kind, P, x_start, rounds):
+        """Round ``rnd`` of ``n``: kind 'common' (one kernel for every lenslet), 'lenslets' or 'gains' (each
+        lenslet's gain alone: kernels of radius 0). Returns (the stack, P, the round's reconstruction, its
+        background, whether its volume explained too little to fit kernels to)."""
         scale, nodes = R.round_schedule(rnd, n, prm.psf_refine_l1_start, prm.psf_refine_depth_nodes)
-        lab = labels
-        if staged and (rnd == 0 or common_only):
+        lab, radius = labels, prm.psf_refine_radius
+        if kind == "common":
             lab, nodes = common_labels, prm.psf_refine_depth_nodes
-        radius = prm.psf_refine_radius
-        if gains_only:
+        elif kind == "gains":
             radius, nodes = 0, 1
         solver, rec = solve(h, replace(inner, l1_scale=prm.l1_scale * scale), P, x_start)
-        P, x_start = solver.P, rec.volume_padded
+        P = solver.P
+        del solver
         b = rec.background if rec.background is not None else 0.0
         h_new, k, misfit = R.refine_step(h, lab, rec.volume_padded, y - b, radius, w, depth_nodes=nodes)
         empty = misfit >= R.EMPTY_MISFIT
@@ -277,61 +279,96 @@ def _refined(solve, y, psf, weights, prm, padded_shape, x0):
             h = h_new
         rounds.append({"iterations": rec.iterations, "residual": misfit, "l1_scale": scale, "depth_nodes": nodes,
                        "mu_v": rec.info["initial_penalties"]["mu_v"], "adapt_max_step": rec.info["adapt_max_step"],
-                       "adapt_from": rec.info["adapt_from"],
-                       "kernels": R.kernel_summary(k),
-                       "kept": bool(empty)})
+                       "adapt_from": rec.info["adapt_from"], "kernels": R.kernel_summary(k), "kept": bool(empty)})
         gains = [q["gain"] for q in rounds[-1]["kernels"]]
         log.info("PSF refinement round %d of %d: %d iterations, misfit %.4f before it; %d kernels, gains %.2f-%.2f",
                  len(rounds), n, rec.iterations, misfit, len(gains), min(gains), max(gains))
-        if staged and rnd == 0 and empty:   # nothing to fit from the sparse start: the PSF as given
-            n = 1
-            if mode == "auto":
-                check_why = check_why or "the round's volume explained too little of the data"
-        elif mode == "auto" and rnd == 0:
-            if check_why is not None:
-                common_only, n = True, R.COMMON_ROUNDS
-            else:   # the check: kernels per lenslet on the same volume, imaged by the commonly refined stack
-                h_sep, k_sep, _, rec_check = R.refine_step(h, labels, rec.volume_padded, y - b,
-                                                           prm.psf_refine_radius, w, check=True)
-                spot = R.spot_width_px(psf)
-                share = R.extended_share(rec.volume_padded, spot)
-                check = {**rec_check, "iterations": rec.iterations, "l1_scale": scale,
-                         "views_disagree": rec_check["refine"], "extended_share": share, "spot_px": spot,
-                         "extended_threshold": R.EXTENDED_SHARE,
-                         "refine": rec_check["refine"] and share <= R.EXTENDED_SHARE}
-                log.info("psf_refine auto: the lenslets' kernels explain %.3f of the misfit beyond a common one "
-                         "(threshold %.3f), %.2f of the volume's energy in extended pieces (threshold %.2f): %s",
-                         check["disagreement"], check["threshold"], share, R.EXTENDED_SHARE,
-                         "refining them" if check["refine"] else "one kernel common to every lenslet")
-                if check["refine"]:
-                    h = h_sep
-                    rounds[-1]["lenslet_kernels"] = R.kernel_summary(k_sep)
-                elif check["views_disagree"] and R.AUTO_GAIN_ROUNDS:
-                    gains_only, n = True, 1 + R.AUTO_GAIN_ROUNDS
-                else:
-                    common_only, n = True, R.COMMON_ROUNDS
-        rnd += 1
-    # where kernels per lenslet were fitted (the volume is points, the PSF fits each view) l1 is reweighted
-    reweight = R.final_reweight(prm, mode == "auto" and n > 1 and not (gains_only or common_only))
-    # the final solve starts from the last round's volume, solved at up to psf_refine_l1_start x the l1 weight: a
-    # sparse start far from the answer, unlike a user's x0 (an answer, a series' previous frame), so it waits as a
-    # cold solve does. Measured both ways on the quality suite, its seeds and the held-out family (docs/quality.md,
-    # docs/heldout_psf.md "stop 54": 12 of 15 seed frames against 11, 7 of 12 held-out frames against 8)
-    final = replace(prm, psf_refine=n, adapt_from=prm.adapt_from if prm.adapt_from is not None else ADAPT_FROM)
-    solver, rec = solve(h, R.with_reweight(final, reweight), P, x_start)
+        return h, P, rec, b, empty
+
+    def finish(h, first, n, kind, P, x_start, rounds, reweight=None):
+        """Rounds ``first``..``n``-1 of ``kind``, then the final solve: (P, its reconstruction, the stack)."""
+        for rnd in range(first, n):
+            h, P, rec, _, _ = one_round(h, rnd, n, kind, P, x_start, rounds)
+            x_start = rec.volume_padded
+        # the final solve starts from the last round's volume, solved at up to psf_refine_l1_start x the l1
+        # weight: a sparse start far from the answer, unlike a user's x0 (an answer, a series' previous frame), so
+        # it waits as a cold solve does. Measured both ways on the quality suite, its seeds and the held-out
+        # family (docs/quality.md, docs/heldout_psf.md "stop 54": 12 of 15 seed frames against 11, 7 of 12
+        # held-out frames against 8)
+        final = replace(prm, psf_refine=n, adapt_from=prm.adapt_from if prm.adapt_from is not None else ADAPT_FROM)
+        solver, rec = solve(h, R.with_reweight(final, reweight), P, x_start)
+        return solver.P, rec, h
+
+    h = np.asarray(psf, np.float64)
+    rounds, check, compared = [], None, None
+    kind = "common" if staged else "lenslets"
+    n = R.plan_rounds(mode) if not staged else (R.COMMON_ROUNDS if mode == "common" else R.AUTO_ROUNDS)
+    h, P, rec0, b0, empty = one_round(h, 0, n, kind, padded_shape, x0, rounds)
+    x_start = rec0.volume_padded
+    if staged and empty:   # nothing to fit from the sparse start: the PSF as given
+        n = 1
+        if mode == "auto":
+            check_why = check_why or "the round's volume explained too little of the data"
+    elif mode == "auto" and check_why is not None:
+        n = R.COMMON_ROUNDS
+    elif mode == "auto":   # the check: kernels per lenslet on the same volume, imaged by the commonly refined stack
+        h_sep, k_sep, _, rec_check = R.refine_step(h, labels, x_start, y - b0, prm.psf_refine_radius, w, check=True)
+        spot = R.spot_width_px(psf)
+        share = R.extended_share(x_start, spot)
+        check = {**rec_check, "iterations": rec0.iterations, "l1_scale": rounds[0]["l1_scale"],
+                 "views_disagree": rec_check["refine"], "extended_share": share, "spot_px": spot,
+                 "extended_threshold": R.EXTENDED_SHARE, "refine": rec_check["refine"] and share <= R.EXTENDED_SHARE}
+        log.info("psf_refine auto: the lenslets' kernels explain %.3f of the misfit beyond a common one "
+                 "(threshold %.3f), %.2f of the volume's energy in extended pieces (threshold %.2f): %s",
+                 check["disagreement"], check["threshold"], share, R.EXTENDED_SHARE,
+                 "both answers solved" if check["refine"] else "one kernel common to every lenslet")
+        if check["refine"]:
+            kind, n = "lenslets", R.AUTO_ROUNDS
+            if not prm.psf_refine_compare:
+                h = h_sep
+                rounds[-1]["lenslet_kernels"] = R.kernel_summary(k_sep)
+        elif check["views_disagree"] and R.AUTO_GAIN_ROUNDS:
+            kind, n = "gains", 1 + R.AUTO_GAIN_ROUNDS
+        else:
+            n = R.COMMON_ROUNDS
+    if kind == "lenslets" and mode == "auto" and prm.psf_refine_compare:
+        # both answers from the same first round: kernels per lenslet (from the check's) and the common kernel's
+        lens_rounds = [{**rounds[0], "lenslet_kernels": R.kernel_summary(k_sep)}]
+        reweight = R.final_reweight(prm, True)
+        P_l, rec_l, h_l = finish(h_sep, 1, n, "lenslets", P, x_start, lens_rounds, reweight)
+        com_rounds = [dict(rounds[0])]
+        P_c, rec_c, h_c = finish(h, 1, R.COMMON_ROUNDS, "common", P, x_start, com_rounds)
+        keep = R.lenslets_fit_better(rec_l.info["misfit"], rec_c.info["misfit"], check)
+        compared = {"lenslets": {**rec_l.info["misfit"], "iterations": rec_l.iterations
+                                 + sum(r["iterations"] for r in lens_rounds[1:])},
+                    "common": {**rec_c.info["misfit"], "iterations": rec_c.iterations
+                               + sum(r["iterations"] for r in com_rounds[1:])},
+                    "kept": "lenslets" if keep else "common"}
+        log.info("psf_refine auto: final misfit %.4g with kernels per lenslet, %.4g with the common kernel: %s kept",
+                 rec_l.info["misfit"]["rms"], rec_c.info["misfit"]["rms"], compared["kept"])
+        spent = compared["lenslets"]["iterations"] + compared["common"]["iterations"] + rounds[0]["iterations"]
+        if keep:
+            P, rec, h, rounds = P_l, rec_l, h_l, lens_rounds
+        else:
+            P, rec, h, rounds, n, kind, reweight = P_c, rec_c, h_c, com_rounds, R.COMMON_ROUNDS, "common", None
+    else:
+        reweight = R.final_reweight(prm, mode == "auto" and kind == "lenslets")
+        P, rec, h = finish(h, 1, n, kind, P, x_start, rounds, reweight)
+        spent = sum(r["iterations"] for r in rounds) + rec.iterations
+    common_only = staged and kind == "common"
     rec.psf = h
     rec.info["psf_refine"] = {"mode": mode if staged else "given",
                               "refined": not all(r["kept"] for r in rounds), "check": check,
                               "rounds": n,
                               "lenslets": int(labels.max()) if not common_only and (n > 1 or mode != "auto") else 1,
-                              "common_only": common_only, "lenslet_gains_only": gains_only,
+                              "common_only": common_only, "lenslet_gains_only": kind == "gains",
                               "radius_px": prm.psf_refine_radius, "overrelax": R.OVERRELAX,
                               "depth_nodes": int(R.depth_weights(h.shape[0], prm.psf_refine_depth_nodes).shape[0]),
                               "l1_start": prm.psf_refine_l1_start, "per_round": rounds, "reweight": reweight,
-                              "iterations_total": sum(r["iterations"] for r in rounds) + rec.iterations}
+                              "compared": compared, "iterations_total": spent}
     if check_why is not None:
         rec.info["psf_refine"]["check_skipped"] = check_why
-    return solver, rec
+    return P, rec
 
 
 def _camera(y, weights, camera):

@@ -222,6 +222,16 @@ class ADMMParams:
         "psf_refine='auto' fitted kernels per lenslet (the volume is then made of points and the PSF fits each "
         "view): the emitters keep more of their light, which plain l1 shrinks by the same amount for faint and "
         "bright ones alike; 0: plain l1. A given l1_reweight applies instead.", unit="rounds", flag=True)
+    # True: frames where the check sends 'auto' to kernels per lenslet also solve the common kernel's answer, and
+    # the better fit keeps (docs/psf_refine.md, stop 58: at 200-600 photons the rounds per lenslet lost beads the
+    # common kernel found; where the mismatch differs between lenslets they fit the data far better)
+    psf_refine_compare: bool = _param(
+        True, {"type": "bool"},
+        "psf_refine='auto' where the lenslets' views disagree: also solve with the common kernel alone and keep "
+        "the answer that fits the data better (info['psf_refine']['compared']); False: kernels per lenslet "
+        "without the comparison (about 20% less time on such frames).",
+        flag="--no-psf-refine-compare", flag_help="psf_refine auto: kernels per lenslet without solving the common "
+        "kernel's answer beside them")
     l1_scale: float = _param(
         1.0, _POS, "Multiplier of the l1 weight, given or by the rule (the PSF refinement's rounds use it).")
     # None: a clear sample; the PSF is a clear-medium calibration (cm2cl.solver.attenuation)

@@ -73,8 +73,12 @@ COMMON_ROUNDS = 2
 #: so the threshold sits at the matched frames' upper edge (docs/psf_refine.md, stop 47). The demo's beads
 #: between 250-um planes gave 0.005-0.011, a paper scene 0.005 (binned 8x).
 VIEW_DISAGREEMENT = 0.015
+#: F statistic that kernels per lenslet reach on white noise, beyond one common kernel: non-negative kernels use
+#: fewer taps than they have (0.3 on pure noise; 0.09-0.23 on the common answer's residual with random signs,
+#: stop 58)
+KERNEL_NOISE_F = 0.3
 #: ... and when the F statistic of that comparison exceeds this: twice what separate kernels reach on white
-#: noise (0.3: non-negative kernels use fewer taps than they have; the 0.999 quantile of F(392, N) for the
+#: noise (KERNEL_NOISE_F; the 0.999 quantile of F(392, N) for the
 #: default 9 lenslets x 49 taps is 1.25 on any sensor of 4000 pixels or more). On a small sensor (128 x 128:
 #: F ~ 41 d) it binds with d; on a large one F grows with the pixels and d decides
 VIEW_F = 0.6
@@ -436,6 +440,18 @@ def view_thresholds(weights=None) -> tuple[float, float]:
     return VIEW_DISAGREEMENT, VIEW_F
 
 
+def lenslets_fit_better(lenslets: dict, common: dict, check: dict) -> bool:
+    """Whether psf_refine='auto''s answer with kernels per lenslet fits the data better than the common kernel's
+    (``info['misfit']`` of the two final solves, :func:`cm2cl.solver.control.data_misfit`): its residual sum of
+    squares, less what the extra kernels fit of noise, is the smaller. Kernels per lenslet fitted to white noise
+    lower the sum of squares by KERNEL_NOISE_F x their extra taps ((lenslets - 1) x taps: ``check``'s) per
+    degree of freedom left, so a frame whose mismatch is common to every lenslet keeps the common answer unless
+    the separate kernels explain more than that."""
+    taps = (int(check["lenslets"]) - 1) * int(check["taps"])
+    dof = max(int(lenslets["pixels"]) - taps, 1)
+    return lenslets["rms"] ** 2 * (1.0 + KERNEL_NOISE_F * taps / dof) < common["rms"] ** 2
+
+
 def view_disagreement(images, kernels, target, sensor_shape, radius: int, weights=None) -> dict:
     """How much the lenslets' views disagree with the PSF, from one fit of a kernel per lenslet (``kernels``,
     :func:`fit_kernels` on ``images`` F_j, one depth node), against one kernel common to every lenslet:
@@ -467,7 +483,7 @@ def view_disagreement(images, kernels, target, sensor_shape, radius: int, weight
     f = ((s_com - s_sep) / max(p_sep - p_com, 1)) / (s_sep / dof) if s_sep > 0 and dof > 0 else 0.0
     d0, f0 = view_thresholds(weights)
     return {"disagreement": d, "f_statistic": f, "refine": bool(d > d0 and f > f0),
-            "threshold": d0, "f_threshold": f0, "lenslets": int(images.shape[0]),
+            "threshold": d0, "f_threshold": f0, "lenslets": int(images.shape[0]), "taps": taps,
             "gains": [float(g) for g in kernels.sum(axis=(1, 2))]}
 
 
@@ -475,5 +491,6 @@ __all__ = ["lenslet_labels", "depth_weights", "round_schedule", "lenslet_images"
            "apply_kernels", "kernel_summary", "refine_step", "sensor_model", "view_disagreement", "view_thresholds",
            "views_through_depth", "AUTO_ROUNDS", "VIEW_DISAGREEMENT", "VIEW_F", "VIEW_DISAGREEMENT_WEIGHTED",
            "VIEW_F_WEIGHTED", "OPTIONAL_MODES", "spot_width_px", "extended_share", "EXTENDED_SHARE", "EXTENDED_SPOTS",
-           "explicit_rounds", "plan_rounds", "EMPTY_MISFIT", "check_skipped", "describe", "final_reweight",
+           "explicit_rounds", "plan_rounds",
+           "lenslets_fit_better", "KERNEL_NOISE_F", "EMPTY_MISFIT", "check_skipped", "describe", "final_reweight",
            "with_reweight", "REWEIGHT_EPS", "COMMON_ROUNDS", "AUTO_GAIN_ROUNDS"]
