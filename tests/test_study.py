@@ -125,6 +125,19 @@ def test_heldout_psf_family_is_what_its_docstring_says():
     np.testing.assert_allclose(g.sum(axis=(1, 2)), 0.5, rtol=1e-3)
 
 
+def test_refine_words_say_which_answer_auto_kept():
+    """The tables of heldout_psf and random_scenes say what the PSF refinement did, and where 'auto' solved both
+    answers, which one it kept."""
+    from benchlib import refine_words
+
+    assert refine_words(None) == "-"
+    assert refine_words({"mode": "auto", "rounds": 1}) == "auto, 1 round"
+    both = {"lenslets": {"rms": 2.0}, "common": {"rms": 1.0}, "kept": "common"}
+    assert refine_words({"mode": "auto", "rounds": 2, "compared": both}) == "auto, 2 rounds (common kernel kept of both)"
+    assert refine_words({"mode": "auto", "rounds": 12, "compared": {**both, "kept": "lenslets"}}) == \
+        "auto, 12 rounds (kernels per lenslet kept of both)"
+
+
 def test_reproduce_paper_calls_an_axial_width_at_the_fits_floor_a_bound():
     """A region whose median source fills one plane (its axial FWHM is the Gaussian fit's floor, 0.71 plane) is
     reported as a bound with the plane named, not as a width narrower than the paper's; a resolved region keeps

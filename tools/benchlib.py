@@ -70,6 +70,19 @@ def made_by(tool: str, argv, seconds: float, doc: str) -> str:
             + doc.split("\n\n")[2].replace("\n", " "))
 
 
+def refine_words(info) -> str:
+    """What the PSF refinement did (``rec.info['psf_refine']``), for a table: its mode and rounds ('auto, 2
+    rounds': the common kernel only), and where 'auto' solved both answers, which one it kept."""
+    if not info:
+        return "-"
+    n = info.get("rounds")
+    out = f"{info.get('mode', '-')}, {n} round{'s' if n != 1 else ''}" if n is not None else str(info.get("mode", "-"))
+    cmp = info.get("compared")
+    if cmp:
+        out += f" ({'kernels per lenslet' if cmp['kept'] == 'lenslets' else 'common kernel'} kept of both)"
+    return out
+
+
 def with_hand_written(text: str, path: Path) -> str:
     """``text`` (a tool's generated markdown) followed by the hand-written part of the page at ``path``, kept
     across re-runs: everything from its first "## " heading that says "(hand-written"."""

@@ -30,7 +30,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import cm2cl  # noqa: E402
-from benchlib import made_by, with_hand_written  # noqa: E402
+from benchlib import made_by, refine_words, with_hand_written  # noqa: E402
 from cm2cl.analysis import quality as Q  # noqa: E402
 
 NZ, SHAPE, FOCUS = 20, (160, 192), 6.0
@@ -83,14 +83,6 @@ def frame(seed: int, n: int = 30, haze: float = 0.06, photons: float = 1000.0, r
     return y, hex_psf(dz_off=0.3), beads
 
 
-def _refine_label(info) -> str:
-    """What the PSF refinement did: its mode and rounds ('auto, 1 round': the common kernel only)."""
-    if not info:
-        return "-"
-    n = info.get("rounds")
-    return f"{info.get('mode', '-')}, {n} round{'s' if n != 1 else ''}" if n is not None else str(info.get("mode", "-"))
-
-
 def run(seeds, log=print) -> list[dict]:
     rows = []
     for seed in seeds:
@@ -107,7 +99,7 @@ def run(seeds, log=print) -> list[dict]:
                 missed.append((z, float(near.max() / vol.max())))
             ok = all(Q.targets_met({"kind": "beads", **s}).values())
             row = {"seed": seed, "frame": label, **s, "iterations": rec.iterations, "pass": ok, "missed": missed,
-                   "psf_refine": _refine_label(rec.info.get("psf_refine")),
+                   "psf_refine": refine_words(rec.info.get("psf_refine")),
                    "seconds": time.perf_counter() - t}
             rows.append(row)
             log(f"seed {seed}, {label}: recall {s['recall']:.2f}, false/10 {s['false_per_10']:.1f}, axial "
