@@ -686,6 +686,29 @@ def test_final_reweight_only_after_kernels_per_lenslet():
     assert R.with_reweight(p, None) is p
 
 
+def test_refinement_steps_aside_where_it_needs_more_than_half_the_host_memory(monkeypatch):
+    """refine_skipped: 'auto' holds its lenslet images and, where it solves both answers, the per-lenslet one's
+    stack and volumes while the common one is solved, so it asks for more host memory than 'common'; past half
+    of what the host has the PSF is used as given, with the reason."""
+    from cm2cl.solver import api, memory
+
+    psf = Q.array_psf(8, (64, 64))
+    P = (128, 128)
+    plenty = 1 << 40
+    monkeypatch.setattr(memory, "host_available_bytes", lambda: plenty)
+    assert api.refine_skipped(psf, P, mode="auto") is None and api.refine_skipped(psf, P, mode="common") is None
+    planes = P[0] * P[1] * 8
+    auto = planes * (5 * 8 + 9 * 3 + 4)
+    common = planes * (3 * 8 + 1 * 3 + 4)
+    for avail, want in ((2 * auto + 16, (None, None)), (2 * auto - 16, ("auto", None)), (2 * common - 16,
+                                                                                          ("auto", "common"))):
+        monkeypatch.setattr(memory, "host_available_bytes", lambda a=avail: a)
+        got = [api.refine_skipped(psf, P, mode=m) for m in ("auto", "common")]
+        for g, m in zip(got, ("auto", "common")):
+            assert (g is not None) == (m in want), (avail, got)
+            assert g is None or g.startswith("the refinement needs") and g.endswith("GiB of host memory")
+
+
 def test_lenslets_keep_only_where_they_fit_the_data_better_than_their_taps_fit_noise():
     """The comparison of psf_refine='auto''s two answers: kernels per lenslet keep where their final residual sum
     of squares, less KERNEL_NOISE_F x their extra taps per degree of freedom, is below the common kernel's."""

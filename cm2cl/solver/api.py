@@ -220,7 +220,9 @@ def refine_skipped(psf, padded_shape=None, support: bool = False, mode: str = "a
     if _refine_margin(psf, P) < radius:
         return f"the padded grid leaves less than the kernel radius ({radius} px) around the sensor"
     n = int(R.lenslet_labels(psf).max()) if mode == "auto" else 1
-    need = 8 * int(P[0]) * int(P[1]) * (3 * psf.shape[0] + n * R.depth_weights(psf.shape[0], 3).shape[0] + 4)
+    # 'auto' may hold the answer with kernels per lenslet (its stack and volumes) while the common one is solved
+    stacks = 5 if mode == "auto" else 3
+    need = 8 * int(P[0]) * int(P[1]) * (stacks * psf.shape[0] + n * R.depth_weights(psf.shape[0], 3).shape[0] + 4)
     if need > host_available_bytes() // 2:
         log.warning("psf_refine %s: the refinement needs %.1f GiB of host memory, more than half of what is "
                     "available; the PSF is used as given", mode, need / 2**30)
