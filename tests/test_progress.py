@@ -33,6 +33,14 @@ def test_lines_every_n_seconds_when_not_a_terminal(monkeypatch):
     assert [ln.split(",")[0] for ln in lines] == ["cm2cl: iteration 3/100", "cm2cl: iteration 6/100",
                                                   "cm2cl: iteration 9/100"], lines
     assert "objective 3.3333e-01" in lines[0] and "at most 16 min left" in lines[0], lines[0]
+    # a run past its estimate (psf_refine auto's rounds per lenslet) says so, not "at most 0 s left"
+    past = io.StringIO()
+    p = Progress(5, quiet=False, stream=past, every=25.0)
+    for i in range(1, 10):
+        p(_row(i))
+    lines = past.getvalue().splitlines()
+    assert lines[-1].startswith("cm2cl: iteration 9, past the 5 first estimated, objective") and "left" not in \
+        lines[-1], lines
     quiet, off = io.StringIO(), io.StringIO()
     for stream, kw in ((quiet, dict(quiet=True, every=1e-9)), (off, dict(quiet=False, every=0))):
         q = FrameProgress(5, stream=stream, **kw)

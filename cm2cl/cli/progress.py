@@ -50,6 +50,10 @@ class _Reporter:
             if now - self._last >= self.every:
                 self._last = now
                 el = now - self.t0
+                if n > self.total:   # past the estimate (psf_refine auto's rounds per lenslet are not in it)
+                    print(f"cm2cl: {self.unit} {n}, past the {self.total} first estimated, {words}, "
+                          f"{_duration(el)} so far", file=self.stream, flush=True)
+                    return
                 left = el / max(n, 1) * max(self.total - n, 0)
                 print(f"cm2cl: {self.unit} {n}/{self.total}, {words}, {_duration(el)} so far, "
                       f"at most {_duration(left)} left at this rate", file=self.stream, flush=True)
