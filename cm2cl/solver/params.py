@@ -229,7 +229,7 @@ class ADMMParams:
         True, {"type": "bool"},
         "psf_refine='auto' where the lenslets' views disagree: also solve with the common kernel alone and keep "
         "the answer that fits the data better (info['psf_refine']['compared']); False: kernels per lenslet "
-        "without the comparison (about 20% less time on such frames).",
+        "without the comparison (about 15% less time on such frames).",
         flag="--no-psf-refine-compare", flag_help="psf_refine auto: kernels per lenslet without solving the common "
         "kernel's answer beside them")
     l1_scale: float = _param(
