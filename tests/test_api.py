@@ -145,7 +145,7 @@ def test_keywords_are_the_declared_parameters_with_their_defaults():
         "adapt_from", "adapt_max_step", "adapt_ratio", "adapt_until", "background", "camera", "background_scale_px", "backend", "balance_factor", "balance_ratio", "callback",
         "callback_every", "depths_um", "device", "devices", "dtype", "l1", "l1_noise_ratio", "l1_plane_power",
         "l1_reweight", "l1_reweight_eps", "l1_scale", "lean", "max_iter", "max_memory", "max_slab_planes", "measurement", "mu_range", "mu_u", "mu_v", "mu_w",
-        "normalize", "overlap", "padded_shape", "padding", "patience", "penalty", "psf", "psf_refine", "psf_refine_depth_nodes", "psf_refine_iter", "psf_refine_l1_start", "psf_refine_radius", "psf_refine_reweight", "relaxation", "scattering_length_um", "stream", "surface_um", "tol",
+        "normalize", "overlap", "padded_shape", "padding", "patience", "penalty", "psf", "psf_refine", "psf_refine_compare", "psf_refine_depth_nodes", "psf_refine_iter", "psf_refine_l1_start", "psf_refine_radius", "psf_refine_reweight", "relaxation", "scattering_length_um", "stream", "surface_um", "tol",
         "tol_change", "tv", "tv_axial_weight", "tv_isotropic", "tv_iters", "tv_noise_ratio", "voxel_size_um",
         "weights", "x0"])
     for f in fields(ADMMParams):
