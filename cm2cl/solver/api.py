@@ -304,7 +304,7 @@ def _refined(solve, y, psf, weights, prm, padded_shape, x0):
     h = np.asarray(psf, np.float64)
     rounds, check, compared = [], None, None
     kind = "common" if staged else "lenslets"
-    n = R.plan_rounds(mode) if not staged else (R.COMMON_ROUNDS if mode == "common" else R.AUTO_ROUNDS)
+    n = R.plan_rounds(mode)
     h, P, rec0, b0, empty = one_round(h, 0, n, kind, padded_shape, x0, rounds)
     x_start = rec0.volume_padded
     if staged and empty:   # nothing to fit from the sparse start: the PSF as given
