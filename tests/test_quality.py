@@ -38,6 +38,33 @@ def test_the_truth_scores_perfectly(sigma):
     assert Q.energy_near(vol, vol) == 1.0
 
 
+def test_bead_moments_read_a_blobs_light_and_spread():
+    """A 3D Gaussian of known widths gives back its sum, its peak and its standard deviations (the window holds
+    +-5 sigma laterally, +-4 axially: truncation changes them by < 1e-3); a single voxel has no spread; the
+    same light spread over three planes keeps its flux and loses its peak; an empty window gives NaN moments."""
+    nz, ny, nx = 13, 31, 31
+    z, y, x = np.meshgrid(np.arange(nz), np.arange(ny), np.arange(nx), indexing="ij")
+    sz, sl, c = 1.5, 1.2, (6, 15, 16)
+    g = np.exp(-0.5 * ((z - c[0]) ** 2 / sz ** 2 + ((y - c[1]) ** 2 + (x - c[2]) ** 2) / sl ** 2))
+    m = Q.bead_moments(g, [c], half=(6, 6, 6))
+    assert m["flux"][0] == pytest.approx(g.sum()) and m["peak"][0] == pytest.approx(1.0)
+    assert m["axial_sd"][0] == pytest.approx(sz, rel=1e-3)
+    assert m["lateral_rms"][0] == pytest.approx(sl * math.sqrt(2), rel=1e-3)
+    point = np.zeros((nz, ny, nx))
+    point[c] = 3.0
+    spread = np.zeros_like(point)
+    spread[c[0] - 1:c[0] + 2, c[1], c[2]] = 1.0
+    mp, ms = Q.bead_moments(point, [c]), Q.bead_moments(spread, [c])
+    assert (mp["flux"][0], mp["peak"][0], mp["axial_sd"][0], mp["lateral_rms"][0]) == (3.0, 3.0, 0.0, 0.0)
+    assert ms["flux"][0] == 3.0 and ms["peak"][0] == 1.0
+    assert ms["axial_sd"][0] == pytest.approx(math.sqrt(2 / 3)) and ms["lateral_rms"][0] == 0.0
+    # negative values are not light; a window at the corner is clipped to the volume
+    e = Q.bead_moments(-point, [c, (0, 0, 0)])
+    assert e["flux"].tolist() == [0.0, 0.0] and np.isnan(e["axial_sd"]).all()
+    with pytest.raises(Q.InputError, match="half"):
+        Q.bead_moments(point, [c], half=(1, -1, 1))
+
+
 def test_a_bead_two_planes_off_is_lost_and_false_one_plane_off_is_matched():
     beads, vol = beads_and_volume(sigma=0.0)
     z, y, x = beads[0]

@@ -125,6 +125,40 @@ def test_heldout_psf_family_is_what_its_docstring_says():
     np.testing.assert_allclose(g.sum(axis=(1, 2)), 0.5, rtol=1e-3)
 
 
+def test_heldout_spread_table_tells_spread_light_from_lost_light():
+    """heldout_psf's spread table on a volume whose answer is known: the true beads, with those in planes 14-17
+    spread evenly over 5 planes (their peak falls to a fifth, below the detector's threshold). They are missed,
+    keep their flux (about the found beads'), and have an axial sd of sqrt(2) planes against the truth's 0."""
+    import numpy as np
+
+    import heldout_psf as H
+    from cm2cl.analysis import quality as Q
+
+    shape = (96, 96)
+    beads = Q.place_beads(16, H.NZ, shape, seed=5, planes=[*range(0, 8), *range(14, 18)], margin=8, min_lateral=8,
+                           min_axial=H.NZ)
+    beads = beads[np.argsort(beads[:, 0], kind="stable")]     # no bead in another's window (+-3 px)
+    near, far = beads[beads[:, 0] < 8], beads[beads[:, 0] >= 14]
+    truth = Q.bead_volume(beads, np.random.default_rng(1).uniform(0.5, 1.0, len(beads)), H.NZ, shape)
+    vol = truth.copy()
+    for z, y, x in far:
+        blob = truth[z, y - 1:y + 2, x - 1:x + 2].copy()
+        vol[z, y - 1:y + 2, x - 1:x + 2] = 0.0
+        for dz in range(-2, 3):
+            vol[z + dz, y - 1:y + 2, x - 1:x + 2] += blob / 5
+    s = Q.score_beads(vol, beads)
+    assert s["matched"] == list(range(len(near)))
+    rows = H.spread_rows(vol, truth, beads, s["matched"])
+    missed = [r for r in rows if not r["found"]]
+    assert len(missed) == len(far) and all(r["plane"] >= 14 for r in missed)
+    assert all(r["peak"] < Q.DETECT_REL for r in missed)
+    np.testing.assert_allclose([r["flux"] for r in missed], [r["true_flux"] for r in missed], rtol=0.3)
+    np.testing.assert_allclose([r["axial_sd"] for r in missed], np.sqrt(2), rtol=1e-9)
+    assert max(r["true_axial_sd"] for r in rows) < 1e-12
+    table = "\n".join(H.spread_table([{"spread": rows}]))
+    assert "| 14-19 (8-13 out) | missed | %d | " % len(far) in table and "| 1.41 | " in table
+
+
 def test_refine_words_say_which_answer_auto_kept():
     """The tables of heldout_psf and random_scenes say what the PSF refinement did, and where 'auto' solved both
     answers, which one it kept."""

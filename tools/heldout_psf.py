@@ -12,7 +12,9 @@ Poisson noise and Gaussian read noise (2 photons) are added. Beads: Gaussian blo
 suite's). Four frames per seed: 30 beads at haze 6% and 1000 photons; haze 15% at 400 photons; 60 beads; beads of
 sigma 1.4 voxels. Each is reconstructed by ``cm2cl.reconstruct(y, psf)`` at the defaults and scored as the suite
 scores beads (:func:`cm2cl.analysis.quality.score_beads`, issue 24's targets); missed beads are listed by plane
-with their peak against the volume's brightest, the detector's measure.
+with their peak against the volume's brightest, the detector's measure. A second table says where the beads'
+light went, found and missed, by distance from the focus: peak, flux and spread in depth and laterally
+(:func:`cm2cl.analysis.quality.bead_moments`), beside the true beads'.
 """
 
 from __future__ import annotations
@@ -80,14 +82,31 @@ def frame(seed: int, n: int = 30, haze: float = 0.06, photons: float = 1000.0, r
     phase = (yy * rng.uniform(0.5, 1.5) + xx * rng.uniform(0.5, 1.5)) * 2 * np.pi + rng.uniform(0, 6)
     lam = (img + haze * img.max() * (0.6 + 0.4 * np.sin(phase))) * photons / img.max()
     y = rng.poisson(lam) + rng.normal(0.0, read, lam.shape)
-    return y, hex_psf(dz_off=0.3), beads
+    return y, hex_psf(dz_off=0.3), beads, truth
+
+
+#: plane groups of the spread table, by distance from the focus (plane 6): near, middle, far
+GROUPS = (("0-9 (0-4 planes out of focus)", 0, 10), ("10-13 (4-7 out)", 10, 14), ("14-19 (8-13 out)", 14, NZ))
+
+
+def spread_rows(vol, truth, beads, matched) -> list[dict]:
+    """Per bead: its plane, whether the detector found it, and :func:`cm2cl.analysis.quality.bead_moments` of
+    the reconstruction (peak against the volume's brightest, flux against the median found bead's) and of the
+    truth (against the truth's brightest and median bead)."""
+    m, t = Q.bead_moments(vol, beads), Q.bead_moments(truth, beads)
+    found = np.isin(np.arange(len(beads)), matched)
+    fl, tf = float(np.median(m["flux"][found])) if found.any() else float("nan"), float(np.median(t["flux"]))
+    return [{"plane": int(round(b[0])), "found": bool(f), "peak": m["peak"][i] / vol.max(), "flux": m["flux"][i] / fl,
+             "axial_sd": m["axial_sd"][i], "lateral_rms": m["lateral_rms"][i], "true_peak": t["peak"][i] / truth.max(),
+             "true_flux": t["flux"][i] / tf, "true_axial_sd": t["axial_sd"][i], "true_lateral_rms": t["lateral_rms"][i]}
+            for i, (b, f) in enumerate(zip(beads, found))]
 
 
 def run(seeds, log=print) -> list[dict]:
     rows = []
     for seed in seeds:
         for label, kw in FRAMES:
-            y, psf, beads = frame(seed, **kw)
+            y, psf, beads, truth = frame(seed, **kw)
             t = time.perf_counter()
             rec = cm2cl.reconstruct(y, psf)
             vol = np.asarray(rec.volume, np.float64)
@@ -100,6 +119,7 @@ def run(seeds, log=print) -> list[dict]:
             ok = all(Q.targets_met({"kind": "beads", **s}).values())
             row = {"seed": seed, "frame": label, **s, "iterations": rec.iterations, "pass": ok, "missed": missed,
                    "psf_refine": refine_words(rec.info.get("psf_refine")),
+                   "spread": spread_rows(vol, truth, beads, s["matched"]),
                    "seconds": time.perf_counter() - t}
             rows.append(row)
             log(f"seed {seed}, {label}: recall {s['recall']:.2f}, false/10 {s['false_per_10']:.1f}, axial "
@@ -124,8 +144,33 @@ def write_md(rows, path: Path, argv, seconds: float) -> None:
               f"plane {FOCUS:g}): " + ", ".join(f"{z}: {c}" for z, c in sorted(
                   {z: sum(1 for r in rows for zz, _ in r["missed"] if zz == z) for r in rows
                    for z, _ in r["missed"]}.items())) + "."]
+    lines += spread_table(rows)
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(with_hand_written("\n".join(lines) + "\n", path))   # the hand-written reading stays
+
+
+def spread_table(rows) -> list[str]:
+    """Markdown lines: the beads of every frame grouped by distance from the focus and by found / missed, with
+    their means of :func:`spread_rows` (a bead that keeps its light but spreads it has its flux, not its peak)."""
+    beads = [b for r in rows for b in r["spread"]]
+    out = ["", "## Where the missed beads' light went", "",
+           "Every bead of the frames above, by its plane; the window of +-3 planes and +-3 px around it "
+           "(`cm2cl.analysis.quality.bead_moments`). Peak: against the volume's brightest voxel (the detector "
+           f"keeps maxima above {Q.DETECT_REL:g}); flux: the window's light against the frame's median found bead's; "
+           "spreads: intensity-weighted, axial in planes, lateral the rms distance from the centroid in px. Means "
+           "over the beads; the truth's row is the same beads in the true volume (Gaussian blobs in one plane).", "",
+           "| planes | beads | n | peak / brightest | flux / median found | axial sd (planes) | lateral rms (px) |",
+           "|---|---|---|---|---|---|---|"]
+    for label, lo, hi in GROUPS:
+        grp = [b for b in beads if lo <= b["plane"] < hi]
+        for what, sel, pre in (("found", [b for b in grp if b["found"]], ""),
+                               ("missed", [b for b in grp if not b["found"]], ""), ("truth", grp, "true_")):
+            if not sel:
+                continue
+            mean = {k: float(np.nanmean([b[pre + k] for b in sel])) for k in ("peak", "flux", "axial_sd", "lateral_rms")}
+            out.append(f"| {label} | {what} | {len(sel)} | {mean['peak']:.2f} | {mean['flux']:.2f} | "
+                       f"{mean['axial_sd']:.2f} | {mean['lateral_rms']:.2f} |")
+    return out
 
 
 def main(argv=None) -> int:
