@@ -156,7 +156,7 @@ def test_heldout_spread_table_tells_spread_light_from_lost_light():
     np.testing.assert_allclose([r["axial_sd"] for r in missed], np.sqrt(2), rtol=1e-9)
     assert max(r["true_axial_sd"] for r in rows) < 1e-12
     table = "\n".join(H.spread_table([{"spread": rows}]))
-    assert "| 14-19 (8-13 out) | missed | %d | " % len(far) in table and "| 1.41 | " in table
+    assert "| 14-19 (8-13 out) | missed | %d | " % len(far) in table and "| 1.41 (0.00) | " in table
 
 
 def test_refine_words_say_which_answer_auto_kept():

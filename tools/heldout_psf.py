@@ -151,25 +151,26 @@ def write_md(rows, path: Path, argv, seconds: float) -> None:
 
 def spread_table(rows) -> list[str]:
     """Markdown lines: the beads of every frame grouped by distance from the focus and by found / missed, with
-    their means of :func:`spread_rows` (a bead that keeps its light but spreads it has its flux, not its peak)."""
+    the means of :func:`spread_rows` in the reconstruction and, in brackets, in the truth (a bead that keeps its
+    light but spreads it keeps its flux, not its peak)."""
     beads = [b for r in rows for b in r["spread"]]
+    keys = ("peak", "flux", "axial_sd", "lateral_rms")
     out = ["", "## Where the missed beads' light went", "",
            "Every bead of the frames above, by its plane; the window of +-3 planes and +-3 px around it "
            "(`cm2cl.analysis.quality.bead_moments`). Peak: against the volume's brightest voxel (the detector "
-           f"keeps maxima above {Q.DETECT_REL:g}); flux: the window's light against the frame's median found bead's; "
-           "spreads: intensity-weighted, axial in planes, lateral the rms distance from the centroid in px. Means "
-           "over the beads; the truth's row is the same beads in the true volume (Gaussian blobs in one plane).", "",
+           f"keeps maxima above {Q.DETECT_REL:g} of it); flux: the window's light against the frame's median found "
+           "bead's; spreads: intensity-weighted, axial in planes, lateral the rms distance from the centroid in px. "
+           "Means over the beads; in brackets the same beads in the true volume (Gaussian blobs in one plane; its "
+           "flux against the median bead's).", "",
            "| planes | beads | n | peak / brightest | flux / median found | axial sd (planes) | lateral rms (px) |",
            "|---|---|---|---|---|---|---|"]
     for label, lo, hi in GROUPS:
         grp = [b for b in beads if lo <= b["plane"] < hi]
-        for what, sel, pre in (("found", [b for b in grp if b["found"]], ""),
-                               ("missed", [b for b in grp if not b["found"]], ""), ("truth", grp, "true_")):
-            if not sel:
-                continue
-            mean = {k: float(np.nanmean([b[pre + k] for b in sel])) for k in ("peak", "flux", "axial_sd", "lateral_rms")}
-            out.append(f"| {label} | {what} | {len(sel)} | {mean['peak']:.2f} | {mean['flux']:.2f} | "
-                       f"{mean['axial_sd']:.2f} | {mean['lateral_rms']:.2f} |")
+        for what, sel in (("found", [b for b in grp if b["found"]]), ("missed", [b for b in grp if not b["found"]])):
+            if sel:
+                cells = [f"{np.nanmean([b[k] for b in sel]):.2f} ({np.nanmean([b['true_' + k] for b in sel]):.2f})"
+                         for k in keys]
+                out.append(f"| {label} | {what} | {len(sel)} | " + " | ".join(cells) + " |")
     return out
 
 
