@@ -72,7 +72,7 @@ def hex_psf(nz: int = NZ, shape=SHAPE, focus: float = FOCUS, dz_off: float = 0.0
 
 def frame(seed: int, n: int = 30, haze: float = 0.06, photons: float = 1000.0, read: float = 2.0,
           size: float = 0.8):
-    """(y, the PSF given to the reconstruction, true bead positions (n, 3), their amplitudes)."""
+    """(y, the PSF given to the reconstruction, true bead positions (n, 3), the true volume (NZ, *SHAPE))."""
     rng = np.random.default_rng(seed)
     beads = Q.place_beads(n, NZ, SHAPE, seed=seed, margin=16)
     amps = rng.uniform(0.5, 1.0, len(beads))
