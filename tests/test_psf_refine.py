@@ -427,7 +427,7 @@ def test_auto_stays_common_on_a_matching_psf_and_refines_the_lenslets_of_a_misma
     the quality suite's vignetted scene (lenslets dimmed by up to 60%, a field stop) they disagree, the rest of
     the rounds fit kernels per lenslet, and the ghosts that the PSF as given and 'common' both leave are gone."""
     spec = {s.name: s for s in Q.scene_specs()}
-    kw = dict(max_iter=300, psf_refine_iter=50)   # half the defaults' rounds: the same decisions and targets
+    kw = dict(max_iter=300, psf_refine_iter=50)   # half the rounds' iterations: the same decisions and targets
     matched = Q.render_scene(spec["beads"])
     rec = cm2cl.reconstruct(matched.y, matched.psf, psf_refine="auto", **kw)
     info = rec.info["psf_refine"]

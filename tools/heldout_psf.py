@@ -111,11 +111,9 @@ def run(seeds, log=print) -> list[dict]:
             rec = cm2cl.reconstruct(y, psf)
             vol = np.asarray(rec.volume, np.float64)
             s = Q.score_beads(vol, beads)
-            missed = []
-            for j in sorted(set(range(len(beads))) - set(s["matched"])):
-                z, r, c = (int(round(v)) for v in beads[j])
-                near = vol[max(z - 1, 0):z + 2, max(r - 2, 0):r + 3, max(c - 2, 0):c + 3]
-                missed.append((z, float(near.max() / vol.max())))
+            lost = sorted(set(range(len(beads))) - set(s["matched"]))   # their peak within +-1 plane, +-2 px
+            peak = Q.bead_moments(vol, beads[lost], half=(1, 2, 2))["peak"] if lost else []
+            missed = [(int(round(beads[j][0])), float(p / vol.max())) for j, p in zip(lost, peak)]
             ok = all(Q.targets_met({"kind": "beads", **s}).values())
             row = {"seed": seed, "frame": label, **s, "iterations": rec.iterations, "pass": ok, "missed": missed,
                    "psf_refine": refine_words(rec.info.get("psf_refine")),
